@@ -1,0 +1,1 @@
+"""Calibration: target detection, intrinsics, light plane, extrinsics and hand-eye."""

@@ -1,0 +1,1 @@
+"""Metrology: feature fits, inspection plans, the EF check and accuracy reports."""

@@ -1,0 +1,131 @@
+"""File helpers shared by every stage: the input error type, atomic writes, image loading."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = [
+    "InputError",
+    "atomic_output",
+    "image_size",
+    "load_gray_image",
+    "write_json_atomic",
+    "write_text_atomic",
+]
+
+
+class InputError(ValueError):
+    """Bad input: a file that is missing, unreadable or wrong, with the reason.
+
+    ``str(err)`` is the one line the command line prints: ``"<path>: <reason>"``.
+    """
+
+    def __init__(self, path: str | os.PathLike[str] | None, reason: str) -> None:
+        self.path = None if path is None else Path(path)
+        self.reason = reason
+        super().__init__(reason if path is None else f"{path}: {reason}")
+
+
+@contextlib.contextmanager
+def atomic_output(path: str | os.PathLike[str], suffix: str | None = None) -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; rename it onto ``path`` only on success.
+
+    A failure leaves ``path`` as it was (never half-written) and removes the temporary file.
+    ``suffix`` defaults to the target's suffix so format-sniffing writers (Open3D) still work.
+    """
+    target = Path(path)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp_name = tempfile.mkstemp(
+        prefix=f".{target.name}.",
+        suffix=suffix if suffix is not None else target.suffix,
+        dir=target.parent,
+    )
+    os.close(fd)
+    tmp = Path(tmp_name)
+    try:
+        yield tmp
+        os.replace(tmp, target)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+        raise
+
+
+def write_text_atomic(path: str | os.PathLike[str], text: str) -> None:
+    with atomic_output(path) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+
+
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+def write_json_atomic(path: str | os.PathLike[str], obj: Any) -> None:
+    """Write ``obj`` as indented JSON (NumPy arrays and scalars allowed), atomically."""
+    write_text_atomic(
+        path, json.dumps(obj, indent=2, default=_json_default, allow_nan=False) + "\n"
+    )
+
+
+def image_size(path: str | os.PathLike[str]) -> tuple[int, int]:
+    """``(width, height)`` of an image, from the PNG header when possible (no decoding).
+
+    Raises
+    ------
+    InputError
+        The file is missing or not a readable image.
+    """
+    p = Path(path)
+    try:
+        with open(p, "rb") as fh:
+            head = fh.read(24)
+    except OSError as exc:
+        raise InputError(p, f"cannot read image ({exc.strerror or exc})") from None
+    if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
+        return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise InputError(p, "not a readable image (expected PNG, TIFF or JPEG)")
+    return int(img.shape[1]), int(img.shape[0])
+
+
+def load_gray_image(path: str | os.PathLike[str], laser: bool = False) -> NDArray:
+    """Load an 8- or 16-bit image as a 2-D grey array of its original dtype.
+
+    A colour image is reduced to one grey level per pixel: for a laser image the brightest
+    channel (the laser's own channel, whatever its colour), for a target image the luminance.
+
+    Raises
+    ------
+    InputError
+        The file is missing, unreadable or of an unsupported depth.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(p, "image file not found")
+    img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise InputError(p, "not a readable image (expected PNG, TIFF or JPEG)")
+    if img.dtype not in (np.uint8, np.uint16):
+        raise InputError(p, f"expected an 8- or 16-bit image, got {img.dtype}")
+    if img.ndim == 3:
+        if img.shape[2] == 4:
+            img = img[:, :, :3]
+        img = img.max(axis=2) if laser else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    return img
