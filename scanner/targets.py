@@ -8,6 +8,7 @@ All coordinates are in the target frame (mm, z = 0 on the printed face, z out of
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -51,7 +52,7 @@ class ConcentricCirclesTarget:
         d = self.ring_diameters_mm
         if len(d) < 2:
             raise ValueError(f"ring_diameters_mm: expected at least 2 rings, got {len(d)}")
-        if any(b <= a for a, b in zip(d, d[1:])) or d[0] <= 0:
+        if any(b <= a for a, b in itertools.pairwise(d)) or d[0] <= 0:
             raise ValueError("ring_diameters_mm: expected positive, strictly ascending diameters")
         if not 0 < self.line_width_mm < (d[1] - d[0]) / 2:
             raise ValueError(
