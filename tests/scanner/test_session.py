@@ -84,10 +84,10 @@ def set_cell(lines, row, column, value):
             "row 3, column 'z': empty while other pose columns are given",
         ),
         (
-            lambda ls: [ls[0].replace("laser_image", "laser")] + ls[1:],
+            lambda ls: [ls[0].replace("laser_image", "laser"), *ls[1:]],
             "header: missing column 'laser_image'",
         ),
-        (lambda ls: [ls[0].replace(",rz", ",rzz")] + ls[1:], "missing pose column(s) rz"),
+        (lambda ls: [ls[0].replace(",rz", ",rzz"), *ls[1:]], "missing pose column(s) rz"),
     ],
 )
 def test_bad_frames_csv_names_file_row_and_column(tmp_path, edit, message):
