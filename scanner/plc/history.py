@@ -1,0 +1,207 @@
+"""The job history: every job the PLC service accepts, in one SQLite file (WAL mode).
+
+A job is inserted as ``running`` before the PLC sees its acknowledgement, and updated once
+when it ends (``done``, ``error``) with its figures, error code and text and the paths of its
+report and artefacts. Commits are synchronous (``synchronous=FULL``), so a record survives a
+killed process or a power cut. On start, :meth:`JobHistory.mark_interrupted` turns any record
+still ``running`` (the service died under it) into ``interrupted``: none is left running.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import logging
+import os
+import sqlite3
+import threading
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+__all__ = ["JOB_STATES", "JobHistory", "JobRecord"]
+
+log = logging.getLogger(__name__)
+
+#: The states a record can be in.
+JOB_STATES = ("running", "done", "error", "interrupted")
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS jobs (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    command INTEGER NOT NULL,
+    command_name TEXT NOT NULL,
+    sequence INTEGER NOT NULL,
+    parameter INTEGER NOT NULL DEFAULT 0,
+    state TEXT NOT NULL CHECK (state IN ('running', 'done', 'error', 'interrupted')),
+    started_at TEXT NOT NULL,
+    finished_at TEXT,
+    passed INTEGER,
+    result1_um REAL,
+    result2_um REAL,
+    result3_um REAL,
+    error_code INTEGER NOT NULL DEFAULT 0,
+    error_text TEXT NOT NULL DEFAULT '',
+    session_path TEXT,
+    report_path TEXT,
+    artefacts TEXT NOT NULL DEFAULT '[]'
+);
+"""
+
+_COLUMNS = (
+    "id, command, command_name, sequence, parameter, state, started_at, finished_at, passed, "
+    "result1_um, result2_um, result3_um, error_code, error_text, session_path, report_path, "
+    "artefacts"
+)
+
+
+def _now() -> str:
+    return dt.datetime.now(dt.timezone.utc).isoformat(timespec="milliseconds")
+
+
+@dataclass(frozen=True)
+class JobRecord:
+    """One row of the history."""
+
+    id: int
+    command: int
+    command_name: str
+    sequence: int
+    parameter: int
+    state: str
+    started_at: str
+    finished_at: str | None
+    passed: bool | None
+    result1_um: float | None
+    result2_um: float | None
+    result3_um: float | None
+    error_code: int
+    error_text: str
+    session_path: str | None
+    report_path: str | None
+    artefacts: tuple[str, ...]
+
+    @classmethod
+    def _from_row(cls, row: Sequence) -> JobRecord:
+        values = list(row)
+        values[8] = None if values[8] is None else bool(values[8])
+        values[16] = tuple(json.loads(values[16] or "[]"))
+        return cls(*values)
+
+
+class JobHistory:
+    """The SQLite job history (one file, WAL mode, safe to use from several threads).
+
+    Parameters
+    ----------
+    path : path-like
+        The database file; its folder is created. ``":memory:"`` for a throw-away history.
+    """
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        self.path = str(path)
+        if self.path != ":memory:":
+            Path(self.path).parent.mkdir(parents=True, exist_ok=True)
+        self._lock = threading.Lock()
+        self._db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
+        with self._lock:
+            self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.execute("PRAGMA synchronous=FULL")
+            self._db.execute("PRAGMA busy_timeout=5000")
+            self._db.executescript(_SCHEMA)
+
+    def close(self) -> None:
+        with self._lock:
+            self._db.close()
+
+    def __enter__(self) -> JobHistory:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def start(self, command: int, command_name: str, sequence: int, parameter: int) -> int:
+        """Insert a ``running`` job and return its id (committed when this returns)."""
+        with self._lock:
+            cur = self._db.execute(
+                "INSERT INTO jobs (command, command_name, sequence, parameter, state, started_at)"
+                " VALUES (?, ?, ?, ?, 'running', ?)",
+                (command, command_name, sequence, parameter, _now()),
+            )
+            return int(cur.lastrowid or 0)
+
+    def finish(
+        self,
+        job_id: int,
+        state: str,
+        *,
+        passed: bool | None = None,
+        results_um: Sequence[float | None] = (None, None, None),
+        error_code: int = 0,
+        error_text: str = "",
+        session_path: str | os.PathLike[str] | None = None,
+        report_path: str | os.PathLike[str] | None = None,
+        artefacts: Sequence[str | os.PathLike[str]] = (),
+    ) -> None:
+        """Record how job ``job_id`` ended.
+
+        Raises
+        ------
+        ValueError
+            ``state`` is not a final state or ``results_um`` does not hold three values.
+        """
+        if state not in JOB_STATES[1:]:
+            raise ValueError(f"expected a final state {JOB_STATES[1:]}, got {state!r}")
+        if len(results_um) != 3:
+            raise ValueError(f"expected 3 results, got {len(results_um)}")
+        r1, r2, r3 = (None if r is None else float(r) for r in results_um)
+        with self._lock:
+            self._db.execute(
+                "UPDATE jobs SET state=?, finished_at=?, passed=?, result1_um=?, result2_um=?,"
+                " result3_um=?, error_code=?, error_text=?, session_path=?, report_path=?,"
+                " artefacts=? WHERE id=?",
+                (
+                    state,
+                    _now(),
+                    None if passed is None else int(passed),
+                    r1,
+                    r2,
+                    r3,
+                    int(error_code),
+                    error_text,
+                    None if session_path is None else str(session_path),
+                    None if report_path is None else str(report_path),
+                    json.dumps([str(a) for a in artefacts]),
+                    job_id,
+                ),
+            )
+
+    def mark_interrupted(self, error_code: int, error_text: str) -> list[int]:
+        """Turn every ``running`` record into ``interrupted``; return their ids."""
+        with self._lock:
+            ids = [r[0] for r in self._db.execute("SELECT id FROM jobs WHERE state='running'")]
+            if ids:
+                self._db.execute(
+                    "UPDATE jobs SET state='interrupted', finished_at=?, error_code=?,"
+                    " error_text=? WHERE state='running'",
+                    (_now(), int(error_code), error_text),
+                )
+        for job_id in ids:
+            log.warning("job %d was running when the service stopped: marked interrupted", job_id)
+        return ids
+
+    def get(self, job_id: int) -> JobRecord | None:
+        """The record with this id, or ``None``."""
+        with self._lock:
+            row = self._db.execute(f"SELECT {_COLUMNS} FROM jobs WHERE id=?", (job_id,)).fetchone()
+        return None if row is None else JobRecord._from_row(row)
+
+    def latest(self, limit: int = 20) -> list[JobRecord]:
+        """The newest ``limit`` records, newest first."""
+        if limit < 1:
+            raise ValueError(f"expected limit >= 1, got {limit}")
+        with self._lock:
+            rows = self._db.execute(
+                f"SELECT {_COLUMNS} FROM jobs ORDER BY id DESC LIMIT ?", (limit,)
+            ).fetchall()
+        return [JobRecord._from_row(r) for r in rows]
