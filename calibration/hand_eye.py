@@ -1,0 +1,642 @@
+"""Hand-eye calibration: ``flange_from_cam`` (the paper's T_ec) and the fixed target's pose.
+
+With the target fixed in the base frame, every posed view i closes the chain::
+
+    base_from_target = base_from_flange[i] @ flange_from_cam @ cam_from_target[i]
+
+Methods
+-------
+``default``
+    Initialise from the best closed form (OpenCV's five AX=XB solvers and two AX=ZB solvers,
+    through :mod:`calibration.opencv_adapter`), then one joint nonlinear adjustment of
+    ``flange_from_cam`` and ``base_from_target`` minimising the image residuals of every target
+    feature in every posed view (robust loss), optionally with the intrinsics.
+``tsai``, ``park``, ``horaud``, ``andreff``, ``daniilidis``, ``shah``, ``li``
+    The OpenCV baselines alone.
+``paper``
+    Section III.D: stripe on O, A and C; their base-frame positions from eqs. (12)-(13);
+    ``base_from_target`` built from O, A, C; ``T_ec = T_o6O^-1 T_ow T_wcO``
+    (:func:`paper_hand_eye`).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from calibration.extrinsics import estimate_pose, project_target
+from calibration.opencv_adapter import (
+    AX_XB_METHODS,
+    AX_ZB_METHODS,
+    hand_eye_ax_xb,
+    robot_world_hand_eye_ax_zb,
+)
+from scanner.camera import CameraModel
+from scanner.conventions import (
+    angle_between_rotations_deg,
+    invert_transform,
+    make_transform,
+    orthonormalize,
+    transform_points,
+)
+
+__all__ = [
+    "CLOSED_FORM_METHODS",
+    "HandEyeResult",
+    "PosedView",
+    "StripePointView",
+    "average_transforms",
+    "calibrate_hand_eye",
+    "check_robot_motion",
+    "closed_form_hand_eye",
+    "paper_hand_eye",
+    "pose_convention_warnings",
+]
+
+logger = logging.getLogger(__name__)
+
+CLOSED_FORM_METHODS = (*AX_XB_METHODS, *AX_ZB_METHODS)
+
+#: Refuse when no two poses differ by more than this rotation.
+MIN_ROTATION_DEG = 2.0
+#: Refuse when every relative rotation axis lies within this angle of one line.
+MIN_AXIS_SPREAD_DEG = 3.0
+
+
+@dataclass
+class PosedView:
+    """One posed view of the fixed target.
+
+    Attributes
+    ----------
+    frame_id : int
+    base_from_flange : ndarray, shape (4, 4)
+    points_px : ndarray, shape (N, 2)
+        Detected features, distorted pixels.
+    points_target : ndarray, shape (N, 3)
+        The same features in the target frame, mm.
+    cam_from_target : ndarray, shape (4, 4) or None
+        The view's own pose estimate (computed by PnP when None).
+    """
+
+    frame_id: int
+    base_from_flange: NDArray
+    points_px: NDArray
+    points_target: NDArray
+    cam_from_target: NDArray | None = None
+
+
+@dataclass
+class HandEyeResult:
+    """A hand-eye solution, or a failed one (falsy) whose ``reason`` says why.
+
+    Attributes
+    ----------
+    flange_from_cam, base_from_target : ndarray, shape (4, 4) or None
+    method : str
+    rms_px : float
+        Reprojection RMS of every feature through the whole chain (robot pose, hand-eye,
+        target in base, intrinsics).
+    per_pose : list of dict
+        ``frame_id``, ``rms_px``, ``target_dt_mm``, ``target_dr_deg`` (how far the view's own
+        target pose, carried into the base, lies from ``base_from_target``).
+    std_rotation_deg, std_translation_mm : ndarray, shape (3,)
+        One-sigma uncertainty of ``flange_from_cam`` (rotation about the camera axes,
+        translation), NaN for closed forms.
+    target_spread_mm : ndarray, shape (3,)
+        Standard deviation (x, y, z) of the target origin in the base frame across views.
+    camera : CameraModel or None
+        The camera after the adjustment (changed only when intrinsics were refined).
+    warnings : list of str
+    candidates : dict
+        Closed-form candidates tried: name -> chain reprojection RMS, px.
+    """
+
+    ok: bool
+    reason: str = ""
+    flange_from_cam: NDArray | None = None
+    base_from_target: NDArray | None = None
+    method: str = ""
+    rms_px: float = float("nan")
+    per_pose: list[dict[str, Any]] = field(default_factory=list)
+    std_rotation_deg: NDArray = field(default_factory=lambda: np.full(3, np.nan))
+    std_translation_mm: NDArray = field(default_factory=lambda: np.full(3, np.nan))
+    target_spread_mm: NDArray = field(default_factory=lambda: np.full(3, np.nan))
+    camera: CameraModel | None = None
+    warnings: list[str] = field(default_factory=list)
+    candidates: dict[str, float] = field(default_factory=dict)
+
+    def __bool__(self) -> bool:
+        return self.ok
+
+    def quality(self) -> dict[str, Any]:
+        """JSON-ready summary for the calibration file's ``quality``."""
+        return {
+            "method": self.method,
+            "rms_px": self.rms_px,
+            "std_rotation_deg": self.std_rotation_deg.tolist(),
+            "std_translation_mm": self.std_translation_mm.tolist(),
+            "target_spread_mm": self.target_spread_mm.tolist(),
+            "base_from_target": None
+            if self.base_from_target is None
+            else self.base_from_target.tolist(),
+            "per_pose": self.per_pose,
+            "candidates_rms_px": self.candidates,
+            "warnings": list(self.warnings),
+        }
+
+
+def average_transforms(transforms: Sequence[NDArray] | NDArray) -> NDArray:
+    """Mean rigid transform: chordal mean rotation and mean translation, ``(4, 4)``."""
+    arr = np.asarray(transforms, dtype=np.float64)
+    rot = Rotation.from_matrix(arr[:, :3, :3]).mean()
+    return make_transform(rot, arr[:, :3, 3].mean(axis=0))
+
+
+def check_robot_motion(base_from_flange: NDArray) -> str | None:
+    """Why a set of flange poses cannot determine a hand-eye transform, or None.
+
+    Parameters
+    ----------
+    base_from_flange : ndarray, shape (N, 4, 4)
+
+    Returns
+    -------
+    str or None
+        A reason: fewer than 3 poses, too little rotation, or all relative rotations about
+        parallel axes (the translation along that axis is then unobservable).
+    """
+    n = len(base_from_flange)
+    if n < 3:
+        return f"hand-eye needs at least 3 posed views, got {n}"
+    rots = Rotation.from_matrix(base_from_flange[:, :3, :3])
+    axes = []
+    max_angle = 0.0
+    for i in range(n):
+        rel = (rots[i].inv() * rots[i + 1 :]).as_rotvec() if i + 1 < n else np.zeros((0, 3))
+        ang = np.linalg.norm(rel, axis=1)
+        if len(ang):
+            max_angle = max(max_angle, float(np.degrees(ang.max())))
+        for v, a in zip(rel, ang):
+            if np.degrees(a) > 1.0:
+                axes.append(v / a)
+    if max_angle < MIN_ROTATION_DEG:
+        return (
+            f"degenerate robot motion: expected rotations of at least {MIN_ROTATION_DEG} deg "
+            f"between poses, got at most {max_angle:.2f} deg"
+        )
+    ax = np.asarray(axes)
+    # Sign-free principal direction of the axes; spread = largest angle off it.
+    _, _, vt = np.linalg.svd(ax)
+    cosines = np.abs(ax @ vt[0])
+    spread = float(np.degrees(np.arccos(np.clip(cosines.min(), -1, 1))))
+    if spread < MIN_AXIS_SPREAD_DEG:
+        return (
+            "degenerate robot motion: every rotation between poses is about (nearly) the same "
+            f"axis (within {spread:.2f} deg); rotate about at least two different axes"
+        )
+    return None
+
+
+def _ax_xb_residual_mm(base_from_flange: NDArray, cam_from_target: NDArray, x: NDArray) -> float:
+    """RMS of the translation part of ``A X - X B`` over consecutive pose pairs, mm."""
+    res = []
+    for i in range(len(base_from_flange) - 1):
+        a = invert_transform(base_from_flange[i + 1]) @ base_from_flange[i]
+        b = cam_from_target[i + 1] @ invert_transform(cam_from_target[i])
+        res.append(((a @ x) - (x @ b))[:3, 3])
+    return float(np.sqrt(np.mean(np.square(res))))
+
+
+def pose_convention_warnings(base_from_flange: NDArray, cam_from_target: NDArray) -> list[str]:
+    """Warnings for robot poses that look like a unit or convention mistake.
+
+    Metres given as millimetres (every position under 5), or the inverse transform given
+    (``flange_from_base``): AX=XB is solved with the poses as given and inverted, and the
+    inverted ones fitting far better is reported.
+    """
+    warnings = []
+    pos = base_from_flange[:, :3, 3]
+    if np.all(np.abs(pos) < 5.0):
+        warnings.append(
+            "robot positions are all under 5 in size: they look like metres, expected mm"
+        )
+    try:
+        x_given = hand_eye_ax_xb(base_from_flange, cam_from_target, "park")
+        inv = np.stack([invert_transform(t) for t in base_from_flange])
+        x_inv = hand_eye_ax_xb(inv, cam_from_target, "park")
+        r_given = _ax_xb_residual_mm(base_from_flange, cam_from_target, x_given)
+        r_inv = _ax_xb_residual_mm(inv, cam_from_target, x_inv)
+        if r_inv < 0.2 * r_given and r_given > 1.0:
+            warnings.append(
+                f"robot poses fit AX=XB far better inverted ({r_inv:.2f} mm vs {r_given:.2f} mm): "
+                "they look like flange_from_base, expected base_from_flange"
+            )
+    except ValueError as exc:
+        logger.debug("convention check skipped: %s", exc)
+    return warnings
+
+
+def closed_form_hand_eye(
+    base_from_flange: NDArray, cam_from_target: NDArray, method: str
+) -> tuple[NDArray, NDArray]:
+    """``(flange_from_cam, base_from_target)`` from one OpenCV closed form.
+
+    For the AX=XB solvers ``base_from_target`` is the mean of the per-view chains.
+    """
+    if method in AX_ZB_METHODS:
+        return robot_world_hand_eye_ax_zb(base_from_flange, cam_from_target, method)
+    x = hand_eye_ax_xb(base_from_flange, cam_from_target, method)
+    chains = base_from_flange @ x @ cam_from_target
+    return x, average_transforms(chains)
+
+
+def _chain_residuals(
+    views: Sequence[PosedView],
+    camera: CameraModel,
+    flange_from_cam: NDArray,
+    base_from_target: NDArray,
+) -> list[NDArray]:
+    out = []
+    for v in views:
+        cam_from_target = invert_transform(v.base_from_flange @ flange_from_cam) @ base_from_target
+        out.append(v.points_px - project_target(camera, cam_from_target, v.points_target))
+    return out
+
+
+def _rms(res: Sequence[NDArray]) -> float:
+    allr = np.concatenate([r.reshape(-1, 2) for r in res])
+    return float(np.sqrt(np.mean(np.sum(allr**2, axis=1))))
+
+
+def _camera_params(camera: CameraModel) -> NDArray:
+    dist = np.zeros(5)
+    dist[: min(5, camera.dist.size)] = camera.dist[:5]
+    return np.concatenate([[camera.K[0, 0], camera.K[1, 1], camera.K[0, 2], camera.K[1, 2]], dist])
+
+
+def _camera_from_params(camera: CameraModel, p: NDArray) -> CameraModel:
+    K = np.array([[p[0], 0.0, p[2]], [0.0, p[1], p[3]], [0.0, 0.0, 1.0]])
+    return CameraModel(camera.width, camera.height, K, p[4:9].copy())
+
+
+def _adjust(
+    views: Sequence[PosedView],
+    camera: CameraModel,
+    x0: NDArray,
+    z0: NDArray,
+    refine_intrinsics: bool,
+) -> tuple[NDArray, NDArray, CameraModel, NDArray, NDArray]:
+    """Joint adjustment; returns X, Z, camera, 6-vector std of X (rot deg, mm), residual list."""
+    cam_p0 = _camera_params(camera)
+    n_cam = 9 if refine_intrinsics else 0
+    obj = [np.ascontiguousarray(v.points_target.reshape(-1, 1, 3)) for v in views]
+    uv = [v.points_px for v in views]
+    flange_from_base = [invert_transform(v.base_from_flange) for v in views]
+
+    def unpack(p: NDArray) -> tuple[NDArray, NDArray, CameraModel]:
+        # Perturbations: X = X0 (exp(dr), dt) in the camera frame; Z = (exp(dr), dt) Z0 in base.
+        x = x0 @ make_transform(Rotation.from_rotvec(p[0:3]), p[3:6])
+        z = make_transform(Rotation.from_rotvec(p[6:9]), p[9:12]) @ z0
+        cam = _camera_from_params(camera, p[12:]) if n_cam else camera
+        return x, z, cam
+
+    def fun(p: NDArray) -> NDArray:
+        x, z, cam = unpack(p)
+        cam_from_flange = invert_transform(x)
+        out = []
+        for o, u, fb in zip(obj, uv, flange_from_base):
+            ct = cam_from_flange @ fb @ z
+            rvec = Rotation.from_matrix(ct[:3, :3]).as_rotvec()
+            proj, _ = cv2.projectPoints(o, rvec, ct[:3, 3], cam.K, cam.dist)
+            out.append((proj.reshape(-1, 2) - u).ravel())
+        return np.concatenate(out)
+
+    p0 = np.zeros(12 + n_cam)
+    if n_cam:
+        p0[12:] = cam_p0
+    r0 = np.abs(fun(p0))
+    # Robust scale: a few times the typical residual, never below a quarter pixel.
+    f_scale = max(0.25, 3.0 * 1.4826 * float(np.median(r0)))
+    sol = least_squares(fun, p0, loss="soft_l1", f_scale=f_scale, x_scale="jac", max_nfev=200)
+    # Polish with plain least squares on the inliers' scale (same minimum when no outliers).
+    sol = least_squares(fun, sol.x, x_scale="jac", max_nfev=100)
+    x, z, cam = unpack(sol.x)
+    dof = max(1, sol.fun.size - sol.x.size)
+    sigma2 = float(np.sum(sol.fun**2) / dof)
+    std = np.full(6, np.nan)
+    try:
+        cov = np.linalg.pinv(sol.jac.T @ sol.jac) * sigma2
+        s = np.sqrt(np.clip(np.diag(cov)[:6], 0, None))
+        std = np.concatenate([np.degrees(s[:3]), s[3:6]])
+    except np.linalg.LinAlgError:
+        logger.debug("hand-eye covariance singular")
+    res = _chain_residuals(views, cam, x, z)
+    return x, z, cam, std, res
+
+
+def _per_view_poses(
+    views: Sequence[PosedView], camera: CameraModel
+) -> tuple[list[PosedView], list[str]]:
+    kept, rejected = [], []
+    for v in views:
+        if v.cam_from_target is None:
+            pose = estimate_pose(v.points_px, v.points_target, camera)
+            if not pose:
+                rejected.append(f"frame {v.frame_id}: {pose.reason}")
+                continue
+            v = PosedView(
+                v.frame_id, v.base_from_flange, v.points_px, v.points_target, pose.cam_from_target
+            )
+        kept.append(v)
+    return kept, rejected
+
+
+def _summaries(
+    views: Sequence[PosedView],
+    residuals: Sequence[NDArray],
+    x: NDArray,
+    z: NDArray,
+    camera: CameraModel,
+) -> tuple[list[dict[str, Any]], NDArray, list[str]]:
+    per_pose = []
+    origins = []
+    warnings = []
+    for v, r in zip(views, residuals):
+        implied = v.base_from_flange @ x @ v.cam_from_target
+        origins.append(implied[:3, 3])
+        ct = invert_transform(v.base_from_flange @ x) @ z
+        uv = project_target(camera, ct, v.points_target)
+        inside = camera.in_image(uv)
+        if not np.all(inside):
+            warnings.append(
+                f"frame {v.frame_id}: {int((~inside).sum())} target features project outside the image"
+            )
+        per_pose.append(
+            {
+                "frame_id": int(v.frame_id),
+                "rms_px": float(np.sqrt(np.mean(np.sum(r**2, axis=1)))),
+                "max_px": float(np.sqrt(np.sum(r**2, axis=1)).max()),
+                "target_dt_mm": float(np.linalg.norm(implied[:3, 3] - z[:3, 3])),
+                "target_dr_deg": angle_between_rotations_deg(implied, z),
+            }
+        )
+    spread = np.std(np.asarray(origins), axis=0, ddof=1) if len(origins) > 1 else np.zeros(3)
+    return per_pose, spread, warnings
+
+
+def calibrate_hand_eye(
+    views: Sequence[PosedView],
+    camera: CameraModel,
+    method: str = "default",
+    refine_intrinsics: bool = False,
+) -> HandEyeResult:
+    """Solve ``flange_from_cam`` and ``base_from_target`` from posed views of the fixed target.
+
+    Parameters
+    ----------
+    views : sequence of PosedView
+        At least 3, with enough rotation about at least two axes.
+    camera : CameraModel
+        Calibrated intrinsics.
+    method : str
+        ``"default"`` (closed-form start, then joint image-space adjustment) or one of
+        :data:`CLOSED_FORM_METHODS` alone.
+    refine_intrinsics : bool
+        Let the adjustment refine fx, fy, cx, cy and five distortion terms too.
+
+    Returns
+    -------
+    HandEyeResult
+        Falsy with a reason for too few views, degenerate motion, or solver failure.
+    """
+    if method != "default" and method not in CLOSED_FORM_METHODS:
+        raise ValueError(
+            f"method: expected 'default' or one of {', '.join(CLOSED_FORM_METHODS)}, got {method!r}"
+        )
+    views, rejected = _per_view_poses(views, camera)
+    warnings = list(rejected)
+    if len(views) < 3:
+        return HandEyeResult(
+            False,
+            f"hand-eye needs at least 3 posed views with the target found, got {len(views)}",
+            method=method,
+            warnings=warnings,
+        )
+    bf = np.stack([v.base_from_flange for v in views])
+    ct = np.stack([v.cam_from_target for v in views])  # type: ignore[misc]
+    reason = check_robot_motion(bf)
+    if reason:
+        return HandEyeResult(False, reason, method=method, warnings=warnings)
+    warnings += pose_convention_warnings(bf, ct)
+
+    names = CLOSED_FORM_METHODS if method == "default" else (method,)
+    candidates: dict[str, float] = {}
+    solutions: dict[str, tuple[NDArray, NDArray]] = {}
+    for name in names:
+        try:
+            x, z = closed_form_hand_eye(bf, ct, name)
+        except ValueError as exc:
+            warnings.append(f"{name}: {exc}")
+            continue
+        candidates[name] = _rms(_chain_residuals(views, camera, x, z))
+        solutions[name] = (x, z)
+    if not solutions:
+        return HandEyeResult(
+            False, "every closed-form hand-eye solver failed", method=method, warnings=warnings
+        )
+    best = min(candidates, key=lambda k: candidates[k])
+    x, z = solutions[best]
+    std_r = np.full(3, np.nan)
+    std_t = np.full(3, np.nan)
+    cam = camera
+    if method == "default":
+        x, z, cam, std, res = _adjust(views, camera, x, z, refine_intrinsics)
+        std_r, std_t = std[:3], std[3:]
+        label = f"joint adjustment (start: {best})"
+    else:
+        res = _chain_residuals(views, camera, x, z)
+        label = method
+    per_pose, spread, view_warn = _summaries(views, res, x, z, cam)
+    return HandEyeResult(
+        True,
+        flange_from_cam=x,
+        base_from_target=z,
+        method=label,
+        rms_px=_rms(res),
+        per_pose=per_pose,
+        std_rotation_deg=std_r,
+        std_translation_mm=std_t,
+        target_spread_mm=spread,
+        camera=cam,
+        warnings=warnings + view_warn,
+        candidates=candidates,
+    )
+
+
+@dataclass
+class StripePointView:
+    """A posed view in which the stripe crosses one of the named target points.
+
+    Attributes
+    ----------
+    frame_id : int
+    name : str
+        ``"O"``, ``"A"`` or ``"C"``.
+    base_from_flange : ndarray, shape (4, 4)
+    point_cam : ndarray, shape (3,)
+        The named point in the camera frame: its stripe pixel's ray met with the light plane.
+    cam_from_target : ndarray, shape (4, 4) or None
+        The view's extrinsics (needed for the reference view aimed at O).
+    """
+
+    frame_id: int
+    name: str
+    base_from_flange: NDArray
+    point_cam: NDArray
+    cam_from_target: NDArray | None = None
+
+
+def _linear_hand_eye_from_points(groups: dict[str, list[StripePointView]]) -> NDArray:
+    """Closed form for X from fixed points seen at several poses.
+
+    ``F_j X p_j = F_0 X p_0`` for every view j of the same point is linear in ``vec(R_X)`` and
+    ``t_X``; the rotation is then orthonormalised by SVD and the translation re-solved.
+    """
+    rows, rhs = [], []
+    for views in groups.values():
+        ref = views[0]
+        for v in views[1:]:
+            r_j, t_j = v.base_from_flange[:3, :3], v.base_from_flange[:3, 3]
+            r_0, t_0 = ref.base_from_flange[:3, :3], ref.base_from_flange[:3, 3]
+            # R_j R p_j - R_0 R p_0 + (R_j - R_0) t = t_0 - t_j;  R p = kron(I, p^T) vec_row(R)
+            m = r_j @ np.kron(np.eye(3), v.point_cam) - r_0 @ np.kron(np.eye(3), ref.point_cam)
+            rows.append(np.hstack([m, r_j - r_0]))
+            rhs.append(t_0 - t_j)
+    a = np.vstack(rows)
+    b = np.concatenate(rhs)
+    if np.linalg.matrix_rank(a, tol=1e-6 * np.abs(a).max()) < 12:
+        raise ValueError("paper hand-eye: the views aimed at O, A and C do not determine T_ec")
+    sol = np.linalg.lstsq(a, b, rcond=None)[0]
+    rot = orthonormalize(sol[:9].reshape(3, 3))
+    # Re-solve the translation with the rotation fixed.
+    rows_t, rhs_t = [], []
+    for views in groups.values():
+        ref = views[0]
+        for v in views[1:]:
+            r_j, t_j = v.base_from_flange[:3, :3], v.base_from_flange[:3, 3]
+            r_0, t_0 = ref.base_from_flange[:3, :3], ref.base_from_flange[:3, 3]
+            rows_t.append(r_j - r_0)
+            rhs_t.append(t_0 - t_j - r_j @ rot @ v.point_cam + r_0 @ rot @ ref.point_cam)
+    t = np.linalg.lstsq(np.vstack(rows_t), np.concatenate(rhs_t), rcond=None)[0]
+    return make_transform(rot, t)
+
+
+def _point_in_base_eq13(views: list[StripePointView], x: NDArray) -> NDArray:
+    """Eqs. (12)-(13): the named point in the base frame, least squares over its views.
+
+    Eq. (12) carries each view's stripe point ``i_c^j`` into the base through
+    ``T_o6^j T_o6,0^-1 T_oi' T_wci0`` and ``T_oi' T_wci0 = T_o6,0 T_ec``, so every view gives
+    ``i_o = T_o6^j T_ec i_c^j``; eq. (13) solves the stacked system by least squares, whose
+    solution is the mean of those chains.
+    """
+    chains = [transform_points(v.base_from_flange @ x, v.point_cam.reshape(1, 3))[0] for v in views]
+    return np.mean(chains, axis=0)
+
+
+def paper_hand_eye(views: Sequence[StripePointView], radius_mm: float) -> HandEyeResult:
+    """The paper's hand-eye (Section III.D) from views with the stripe on O, A and C.
+
+    Parameters
+    ----------
+    views : sequence of StripePointView
+        At least two views per point O, A and C; the first view aimed at O must carry its
+        ``cam_from_target`` (the paper's T_cwO, e.g. from :func:`calibration.extrinsics.paper_pose`).
+    radius_mm : float
+        R = |OA| = |OC|, to report how far the recovered points are from the target's geometry.
+
+    Returns
+    -------
+    HandEyeResult
+        ``flange_from_cam = T_o6O^-1 T_ow T_wcO`` and ``base_from_target = T_ow`` built from
+        O, A and C in the base frame; falsy with a reason when a point has too few views.
+
+    Notes
+    -----
+    Eq. (13) as printed needs ``T_wci0``, which contains the unknown rotation of ``T_ec``.
+    The rotation and translation of ``T_ec`` are first taken from the same fixed-point
+    constraints ``T_o6^j T_ec i_c^j = T_o6^0 T_ec i_c^0`` (linear in the entries of ``R_ec``,
+    SVD-orthonormalised), then O, A and C follow from eqs. (12)-(13) by least squares.
+    """
+    groups: dict[str, list[StripePointView]] = {"O": [], "A": [], "C": []}
+    for v in views:
+        if v.name not in groups:
+            raise ValueError(f"view {v.frame_id}: expected name O, A or C, got {v.name!r}")
+        groups[v.name].append(v)
+    for name, g in groups.items():
+        if len(g) < 2:
+            return HandEyeResult(
+                False,
+                f"paper hand-eye: expected >= 2 views with the stripe on {name}, got {len(g)}",
+                method="paper",
+            )
+    ref_o = next((v for v in groups["O"] if v.cam_from_target is not None), None)
+    if ref_o is None:
+        return HandEyeResult(
+            False, "paper hand-eye: no view aimed at O has extrinsics", method="paper"
+        )
+    groups["O"].remove(ref_o)
+    groups["O"].insert(0, ref_o)
+    bf = np.stack([v.base_from_flange for v in views])
+    reason = check_robot_motion(bf)
+    if reason:
+        return HandEyeResult(False, reason, method="paper")
+    try:
+        x_lin = _linear_hand_eye_from_points(groups)
+    except ValueError as exc:
+        return HandEyeResult(False, str(exc), method="paper")
+    pts = {name: _point_in_base_eq13(g, x_lin) for name, g in groups.items()}
+    o, a, c = pts["O"], pts["A"], pts["C"]
+    x_axis = (a - o) / np.linalg.norm(a - o)
+    y_axis = c - o
+    z_axis = np.cross(x_axis, y_axis)
+    z_axis /= np.linalg.norm(z_axis)
+    y_axis = np.cross(z_axis, x_axis)
+    base_from_target = make_transform(orthonormalize(np.column_stack([x_axis, y_axis, z_axis])), o)
+    target_from_cam_o = invert_transform(ref_o.cam_from_target)  # type: ignore[arg-type]
+    x = invert_transform(ref_o.base_from_flange) @ base_from_target @ target_from_cam_o
+    per_pose = []
+    for name, g in groups.items():
+        for v in g:
+            p_base = transform_points(v.base_from_flange @ x, v.point_cam.reshape(1, 3))[0]
+            per_pose.append(
+                {
+                    "frame_id": int(v.frame_id),
+                    "point": name,
+                    "point_base_mm": p_base.tolist(),
+                    "scatter_mm": float(np.linalg.norm(p_base - pts[name])),
+                }
+            )
+    warnings = []
+    for name, p in (("A", a), ("C", c)):
+        err = abs(float(np.linalg.norm(p - o)) - radius_mm)
+        if err > 1.0:
+            warnings.append(f"|O{name}| differs from R = {radius_mm:.3f} mm by {err:.2f} mm")
+    spread = np.std([q["point_base_mm"] for q in per_pose if q["point"] == "O"], axis=0, ddof=1)
+    return HandEyeResult(
+        True,
+        flange_from_cam=x,
+        base_from_target=base_from_target,
+        method="paper",
+        per_pose=per_pose,
+        target_spread_mm=spread,
+        warnings=warnings,
+    )
