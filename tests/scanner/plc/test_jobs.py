@@ -1,0 +1,99 @@
+from __future__ import annotations
+
+import datetime as dt
+import json
+import os
+import threading
+from pathlib import Path
+
+import pytest
+
+from scanner.plc.config import CheckTolerances, PlcConfig, Recipe, StorageConfig
+from scanner.plc.jobs import (
+    FolderSource,
+    JobCancelled,
+    JobContext,
+    JobError,
+    PipelineJobs,
+    check_passed,
+    install_calibration,
+)
+from scanner.plc.registers import ErrorCode
+
+
+def _session(root: Path, name: str, kind: str, mtime: float | None) -> Path:
+    folder = root / name
+    folder.mkdir(parents=True)
+    if mtime is not None:
+        marker = folder / "session.json"
+        marker.write_text(json.dumps({"format": "scan-session/1", "kind": kind}), "utf-8")
+        os.utime(marker, (mtime, mtime))
+    return folder
+
+
+def _ctx(tmp: Path, config: PlcConfig, parameter: int = 0) -> JobContext:
+    return JobContext(1, 1, parameter, tmp / "job", config)
+
+
+def test_folder_source_takes_the_newest_complete_session_of_the_kind(tmp_path: Path):
+    root = tmp_path / "drop"
+    _session(root, "a", "check", 1000.0)
+    newest = _session(root, "b", "check", 2000.0)
+    _session(root, "c", "check", None)  # being written: no session.json yet
+    _session(root, "d", "sweep", 3000.0)
+    source = FolderSource(root)
+    assert source.newest("check") == newest
+    ctx = _ctx(tmp_path, PlcConfig())
+    with pytest.raises(JobError) as err:
+        source.acquire("calibration", ctx)
+    assert err.value.code == ErrorCode.NO_SESSION
+    assert FolderSource(tmp_path / "absent").newest("check") is None
+
+
+def test_install_calibration_keeps_the_old_one(tmp_path: Path):
+    current = tmp_path / "cal" / "calibration.json"
+    first = tmp_path / "first.json"
+    first.write_text("1", "utf-8")
+    assert install_calibration(first, current) is None
+    second = tmp_path / "second.json"
+    second.write_text("2", "utf-8")
+    now = dt.datetime(2026, 1, 2, 3, 4, 5, tzinfo=dt.timezone.utc)
+    kept = install_calibration(second, current, now=now)
+    assert kept == current.with_name("calibration-20260102T030405.json")
+    assert kept.read_text("utf-8") == "1"
+    assert current.read_text("utf-8") == "2"
+    third = tmp_path / "third.json"
+    third.write_text("3", "utf-8")
+    assert install_calibration(third, current, now=now).name == "calibration-20260102T030405-1.json"
+
+
+def test_check_passes_only_within_every_tolerance():
+    tol = CheckTolerances(max_mean_abs_um=10, max_abs_um=20, max_o_spread_um=30)
+    assert check_passed((10.0, -20.0, 30.0), tol)
+    assert not check_passed((10.1, 0.0, 0.0), tol)
+    assert not check_passed((1.0, 1.0, None), tol)
+
+
+def test_pipeline_jobs_say_why_they_cannot_start(tmp_path: Path):
+    config = PlcConfig(
+        storage=StorageConfig(calibration=str(tmp_path / "none.json")),
+        recipes=[Recipe(number=1, name="a", plan="p")],
+    )
+    jobs = PipelineJobs(config, source=FolderSource(tmp_path))
+    with pytest.raises(JobError) as err:
+        jobs.scan(_ctx(tmp_path, config, parameter=5))
+    assert err.value.code == ErrorCode.UNKNOWN_RECIPE
+    with pytest.raises(JobError) as err:
+        jobs.recalibration_check(_ctx(tmp_path, config))
+    assert err.value.code == ErrorCode.NO_CALIBRATION
+    with pytest.raises(JobError) as err:
+        jobs.full_calibration(_ctx(tmp_path, config))
+    assert err.value.code == ErrorCode.NO_SESSION
+
+
+def test_cancellation_is_raised_at_the_next_check(tmp_path: Path):
+    ctx = JobContext(1, 1, 0, tmp_path, PlcConfig(), cancel=threading.Event())
+    ctx.check_cancelled()
+    ctx.cancel.set()
+    with pytest.raises(JobCancelled):
+        ctx.check_cancelled()
