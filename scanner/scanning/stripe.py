@@ -1,0 +1,801 @@
+"""Laser stripe extraction: one profile of sub-pixel stripe centres per frame.
+
+A *scan line* is one image row (``orientation="rows"``: the stripe runs top to bottom and each
+row is searched along u) or one image column (``orientation="cols"``: the stripe runs left to
+right and each column is searched along v). The orientation comes from the light plane's image
+(:func:`orientation_from_calibration`) or from the image's gradients (``"auto"``).
+
+Two estimators share one interface:
+
+``fast``
+    The per-line maximum (``argmax`` over the whole image at once), a window gathered around it
+    with fancy indexing, a linear local background (from flank pixels on both sides)
+    subtracted, and the centre of gravity of what remains. Peaks that run into the image border
+    use the three-point Gaussian (log-parabola) estimator on a symmetric window, which a
+    truncated window cannot bias.
+``precise``
+    Steger's line detector restricted to a small patch around each fast-mode centre: the
+    Gaussian-smoothed image's gradient and Hessian evaluated *at* the fast estimate (kernels
+    shifted by its sub-pixel offset), the stripe's cross direction from the Hessian's dominant
+    eigenvector, the centre from the second-order Taylor model along it, then slid along the
+    stripe back onto the scan line. The local background's slope (asymmetric profiles, a lit
+    surface under the stripe) is subtracted from the gradient before the Taylor step.
+
+Several genuine peaks per line are kept (an object and the table beside it can share image
+lines): every local maximum above a contrast threshold set by the image noise and by the
+line's brightest peak. A weaker peak whose chain of neighbouring-line peaks never appears
+without a brighter companion is taken for a reflection and dropped; the survivors on those
+lines carry :attr:`StripeFlag.AMBIGUOUS`.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from enum import IntFlag
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+__all__ = [
+    "StripeFlag",
+    "StripeOptions",
+    "StripeProfile",
+    "estimate_noise",
+    "extract_stripe",
+    "orientation_from_calibration",
+    "orientation_from_image",
+]
+
+log = logging.getLogger(__name__)
+
+MODES = ("fast", "precise")
+ORIENTATIONS = ("auto", "rows", "cols")
+_FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))
+
+
+class StripeFlag(IntFlag):
+    """Quality bits of one stripe point (``StripeProfile.flags``)."""
+
+    NONE = 0
+    SATURATED = 1
+    """The peak reached the saturation level; the centre is that of the saturated run."""
+    AMBIGUOUS = 2
+    """The line showed another candidate peak (a reflection was dropped, or two peaks merged)."""
+    LOW_CONTRAST = 4
+    """Contrast well below the frame's typical stripe (dark surface, grazing angle)."""
+    BORDER = 8
+    """The estimator's window reached the image border; a border-safe estimator was used."""
+    SECONDARY = 16
+    """Not the brightest peak of its line: another stripe segment sharing the line."""
+
+
+@dataclass(frozen=True)
+class StripeOptions:
+    """Tuning of :func:`extract_stripe`; the defaults suit 8-bit frames of a 1-4 px wide stripe.
+
+    Attributes
+    ----------
+    half_window_px : int or None
+        Half-width of the centre-of-gravity window (fast mode); ``None``: about 2.7 sigma of
+        the stripe, measured on a subset of lines (the noise-optimal width for a Gaussian).
+    sigma_px : float or None
+        Smoothing scale of the precise mode; ``None``: from the stripe width, clipped to 1..3 px.
+    k_noise : float
+        A peak needs a contrast above ``k_noise`` times the image noise (standard deviation).
+    min_contrast : float or None
+        Absolute minimum contrast (grey levels); ``None``: 3 % of the saturation level.
+    min_relative_peak : float
+        A further peak on a line needs this fraction of the line's brightest contrast.
+    saturation : float or None
+        Grey level counted as saturated; ``None``: the dtype's maximum (255, 65535).
+    noise : float or None
+        Image noise (grey levels); ``None``: estimated from pixel differences.
+    link_px : float
+        Peaks on neighbouring lines closer than this along the line belong to one segment.
+    reflection_ratio : float
+        A segment that never stands alone and stays below this fraction of its brighter
+        companion's contrast is a reflection.
+    low_contrast_ratio : float
+        Contrast below this fraction of the frame's median stripe contrast sets LOW_CONTRAST.
+    keep_reflections : bool
+        Keep the peaks judged to be reflections (flagged AMBIGUOUS) instead of dropping them.
+    """
+
+    half_window_px: int | None = None
+    sigma_px: float | None = None
+    k_noise: float = 6.0
+    min_contrast: float | None = None
+    min_relative_peak: float = 0.15
+    saturation: float | None = None
+    noise: float | None = None
+    link_px: float = 3.0
+    reflection_ratio: float = 0.6
+    low_contrast_ratio: float = 0.25
+    keep_reflections: bool = False
+
+    def __post_init__(self) -> None:
+        if self.half_window_px is not None and int(self.half_window_px) < 2:
+            raise ValueError(f"half_window_px: expected >= 2, got {self.half_window_px}")
+        if self.sigma_px is not None and not 0.5 <= float(self.sigma_px) <= 10.0:
+            raise ValueError(f"sigma_px: expected 0.5..10 px or None, got {self.sigma_px}")
+        if self.k_noise <= 0:
+            raise ValueError(f"k_noise: expected > 0, got {self.k_noise}")
+        if not 0.0 <= self.min_relative_peak <= 1.0:
+            raise ValueError(f"min_relative_peak: expected 0..1, got {self.min_relative_peak}")
+
+
+@dataclass(frozen=True)
+class StripeProfile:
+    """Stripe centres of one frame: ``N`` points, each a 1-D array of length ``N``.
+
+    Attributes
+    ----------
+    u, v : ndarray, shape (N,), float64
+        Sub-pixel centre, OpenCV pixel convention (u column, v row).
+    intensity : ndarray, shape (N,), float32
+        Peak grey level (background not subtracted).
+    width_px : ndarray, shape (N,), float32
+        Stripe width along the scan line (FWHM-equivalent of the windowed second moment).
+    flags : ndarray, shape (N,), uint8
+        :class:`StripeFlag` bits.
+    line : ndarray, shape (N,), int32
+        Scan-line index: the row (``orientation == "rows"``) or column (``"cols"``).
+    orientation, mode : str
+        How the frame was scanned and which estimator ran.
+    noise : float
+        Image noise estimate used for the thresholds (grey levels).
+    """
+
+    u: NDArray
+    v: NDArray
+    intensity: NDArray
+    width_px: NDArray
+    flags: NDArray
+    line: NDArray
+    orientation: str = "rows"
+    mode: str = "fast"
+    noise: float = 0.0
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.u.shape[0])
+
+    @property
+    def uv(self) -> NDArray:
+        """``(N, 2)`` pixel coordinates."""
+        return np.column_stack([self.u, self.v])
+
+    def select(self, mask: NDArray) -> StripeProfile:
+        """The points where ``mask`` (shape (N,) bool) is true."""
+        return StripeProfile(
+            self.u[mask],
+            self.v[mask],
+            self.intensity[mask],
+            self.width_px[mask],
+            self.flags[mask],
+            self.line[mask],
+            self.orientation,
+            self.mode,
+            self.noise,
+        )
+
+    @classmethod
+    def empty(cls, orientation: str = "rows", mode: str = "fast") -> StripeProfile:
+        f = np.zeros(0)
+        return cls(
+            f,
+            f.copy(),
+            np.zeros(0, np.float32),
+            np.zeros(0, np.float32),
+            np.zeros(0, np.uint8),
+            np.zeros(0, np.int32),
+            orientation,
+            mode,
+        )
+
+
+# --------------------------------------------------------------------------------------------
+# orientation
+
+
+def orientation_from_calibration(calibration: Any, depth_mm: float | None = None) -> str:
+    """Scan orientation from the light plane's image: ``"rows"`` when its line runs top-bottom.
+
+    The light plane is cut with a fronto-parallel plane at ``depth_mm`` (default: where the
+    plane crosses the optical axis, or 300 mm) and the cut is projected through the intrinsics.
+
+    Parameters
+    ----------
+    calibration : scanner.calibration_file.Calibration
+        Needs ``K``, ``width``, ``height`` and ``light_plane`` (``normal . p + d = 0``, camera).
+    """
+    n = np.asarray(calibration.light_plane.normal, dtype=np.float64)
+    d = float(calibration.light_plane.d)
+    if depth_mm is None:
+        depth_mm = -d / n[2] if abs(n[2]) > 1e-9 and -d / n[2] > 0 else 300.0
+    # The cut is the line {p: n.p + d = 0, z = depth}: its direction is n x z_axis.
+    direction = np.cross(n, [0.0, 0.0, 1.0])
+    if np.linalg.norm(direction) < 1e-9:  # plane facing the camera: every line looks the same
+        return "rows"
+    K = np.asarray(calibration.K, dtype=np.float64)
+    # Image direction of a 3-D direction in the plane z = depth: K[:2,:2] @ direction[:2].
+    du, dv = K[:2, :2] @ direction[:2]
+    return "rows" if abs(dv) >= abs(du) else "cols"
+
+
+def orientation_from_image(image: NDArray) -> str:
+    """``"rows"`` when the bright stripe runs top-bottom (its gradients point along u)."""
+    img = np.asarray(image)
+    if img.ndim != 2:
+        raise ValueError(f"image: expected a 2-D grey image, got shape {img.shape}")
+    small = img[::2, ::2].astype(np.float32)
+    gu = np.abs(np.diff(small, axis=1)).sum()
+    gv = np.abs(np.diff(small, axis=0)).sum()
+    return "rows" if gu >= gv else "cols"
+
+
+# --------------------------------------------------------------------------------------------
+# noise
+
+
+def _median(values: NDArray) -> float:
+    """Median, by histogram for integer images (several times faster than partitioning)."""
+    v = np.asarray(values).reshape(-1)
+    if v.dtype in (np.uint8, np.uint16) and v.size:
+        counts = np.bincount(v, minlength=1)
+        return float(np.searchsorted(np.cumsum(counts), (v.size + 1) // 2))
+    return float(np.median(v))
+
+
+def estimate_noise(image: NDArray, step: int = 16) -> float:
+    """Robust standard deviation of the image noise, grey levels (at least 0.5).
+
+    From the median absolute difference of horizontally adjacent pixels on every ``step``-th
+    row, which smooth shading and a thin stripe barely touch.
+    """
+    rows = np.asarray(image)[::step]
+    if rows.dtype in (np.uint8, np.uint16):
+        a, b = rows[:, 1:], rows[:, :-1]
+        diff = np.maximum(a, b) - np.minimum(a, b)  # |a - b| without a wider dtype
+    else:
+        diff = np.abs(np.diff(rows.astype(np.float32), axis=1))
+    mad = _median(diff)
+    return max(0.5, 1.4826 * mad / np.sqrt(2.0))
+
+
+# --------------------------------------------------------------------------------------------
+# fast mode: windowed centre of gravity
+
+
+def _saturation_level(img: NDArray, options: StripeOptions) -> float:
+    if options.saturation is not None:
+        return float(options.saturation)
+    if img.dtype == np.uint8:
+        return 255.0
+    if img.dtype == np.uint16:
+        return 65535.0
+    return float("inf")
+
+
+@dataclass
+class _Peaks:
+    """Peaks in the working orientation (lines are rows, positions along axis 1)."""
+
+    line: NDArray  # (M,) int
+    pos: NDArray  # (M,) float64 centre along the line
+    peak: NDArray  # (M,) float32 peak grey level
+    contrast: NDArray  # (M,) float32 peak minus local background
+    width: NDArray  # (M,) float32
+    flags: NDArray  # (M,) uint8
+    slope: NDArray  # (M,) float32 local background slope along the line (grey/px)
+
+    def take(self, idx: NDArray) -> _Peaks:
+        return _Peaks(*(getattr(self, k)[idx] for k in _Peaks.__dataclass_fields__))
+
+    @staticmethod
+    def concat(parts: list[_Peaks]) -> _Peaks:
+        return _Peaks(
+            *(np.concatenate([getattr(p, k) for p in parts]) for k in _Peaks.__dataclass_fields__)
+        )
+
+
+def _measure(
+    img: NDArray, lines: NDArray, cols: NDArray, hw: int, sat: float, noise: float
+) -> _Peaks:
+    """Centre of gravity around integer peak columns ``cols`` on ``lines`` (vectorised)."""
+    W = img.shape[1]
+    flat = img.reshape(-1)
+    off = np.arange(-hw - 2, hw + 3)
+    c = cols[:, None] + off
+    inside = (c >= 0) & (c < W)
+    vals = flat.take(lines[:, None] * W + np.clip(c, 0, W - 1)).astype(np.float32)
+    peak = flat.take(lines * W + cols).astype(np.float32)
+
+    # Linear background from two flank pixels each side (a missing side: the other one, flat).
+    lf_ok = inside[:, 0] & inside[:, 1]
+    rf_ok = inside[:, -1] & inside[:, -2]
+    left = 0.5 * (vals[:, 0] + vals[:, 1])
+    right = 0.5 * (vals[:, -1] + vals[:, -2])
+    left = np.where(lf_ok, left, right)
+    right = np.where(rf_ok, right, left)
+    xc = off[2:-2].astype(np.float32)
+    span = float(2 * hw + 3)
+    slope = (right - left) / span
+    ramp = 0.5 * (left + right)[:, None] + slope[:, None] * xc[None, :]
+    w = vals[:, 2:-2] - ramp
+    core_in = inside[:, 2:-2]
+    # Symmetric window about the peak pixel when the border cuts it.
+    sym = core_in & core_in[:, ::-1]
+    border = ~np.all(core_in, axis=1)
+    w = np.where(sym, w, 0.0)
+    contrast = peak - (0.5 * (left + right))
+
+    sw = w.sum(axis=1)
+    ok = sw > 0
+    safe = np.where(ok, sw, 1.0)
+    mu = (w * xc).sum(axis=1) / safe
+    var = (w * (xc - mu[:, None]) ** 2).sum(axis=1) / safe
+    width = _FWHM_PER_SIGMA * np.sqrt(np.clip(var, 0.0, None))
+    pos = cols.astype(np.float64) + mu
+    flags = np.zeros(len(cols), np.uint8)
+
+    if np.any(border):
+        # Three-point Gaussian (log-parabola) on background-subtracted values: unbiased for a
+        # Gaussian profile whatever the window, needs only the two neighbours.
+        b = np.flatnonzero(border)
+        k = hw  # index of the peak pixel inside w
+        a0 = w[b, k - 1]
+        a1 = w[b, k]
+        a2 = w[b, k + 1]
+        good = (a0 > 0) & (a1 > 0) & (a2 > 0) & sym[b, k - 1] & sym[b, k + 1]
+        la0, la1, la2 = (np.log(np.where(good, a, 1.0)) for a in (a0, a1, a2))
+        den = la0 - 2 * la1 + la2
+        delta = np.where(good & (den < 0), 0.5 * (la0 - la2) / np.where(den < 0, den, -1.0), 0.0)
+        pos[b] = np.where(good & (np.abs(delta) <= 1.0), cols[b] + delta, pos[b])
+        flags[b] |= np.uint8(StripeFlag.BORDER)
+
+    saturated = peak >= sat
+    if np.any(saturated):
+        s = np.flatnonzero(saturated)
+        pos[s], width[s] = _saturated_centres(img, lines[s], cols[s], sat)
+        flags[s] |= np.uint8(StripeFlag.SATURATED)
+    contrast = np.where(ok, contrast, 0.0).astype(np.float32)
+    return _Peaks(
+        lines.astype(np.int64),
+        pos,
+        peak,
+        contrast,
+        width.astype(np.float32),
+        flags,
+        slope.astype(np.float32),
+    )
+
+
+def _saturated_centres(
+    img: NDArray, lines: NDArray, cols: NDArray, sat: float, reach: int = 40
+) -> tuple[NDArray, NDArray]:
+    """Centre of the saturated run through ``cols``, refined by symmetric-level edge crossings."""
+    W = img.shape[1]
+    off = np.arange(-reach, reach + 1)
+    c = cols[:, None] + off
+    inside = (c >= 0) & (c < W)
+    vals = img.reshape(-1).take(lines[:, None] * W + np.clip(c, 0, W - 1)).astype(np.float64)
+    vals = np.where(inside, vals, -np.inf)
+    on = vals >= sat
+    mid = reach
+    # Run length to the right and to the left of the peak pixel (cumulative product trick).
+    n_right = np.cumprod(on[:, mid:], axis=1).sum(axis=1) - 1
+    n_left = np.cumprod(on[:, mid::-1], axis=1).sum(axis=1) - 1
+    a = mid - n_left  # first saturated index
+    b = mid + n_right  # last saturated index
+    rows = np.arange(len(cols))
+    va = vals[rows, np.clip(a - 1, 0, 2 * reach)]  # outside neighbours (may be -inf at border)
+    vb = vals[rows, np.clip(b + 1, 0, 2 * reach)]
+    level = np.maximum(va, vb)  # a level both flanks cross
+    with np.errstate(invalid="ignore", divide="ignore"):
+        xl = np.where(va >= level, a - 1.0, a - 1.0 + (level - va) / (sat - va))
+        xr = np.where(vb >= level, b + 1.0, b + 1.0 - (level - vb) / (sat - vb))
+    centre = 0.5 * (xl + xr)
+    plain = 0.5 * (a + b)
+    centre = np.where(np.isfinite(centre) & np.isfinite(level), centre, plain)
+    width = (b - a + 1).astype(np.float64)
+    return cols + centre - mid, width
+
+
+def auto_half_window(img: NDArray, noise: float, step: int = 8) -> int:
+    """Noise-optimal centre-of-gravity half-window (about 2.7 sigma) from every ``step``-th line."""
+    H = img.shape[0]
+    lines = np.arange(0, H, step)
+    cols = img[::step].argmax(axis=1)
+    m = _measure(img, lines, cols, 10, float("inf"), noise)
+    ok = m.contrast > 10.0 * noise
+    if np.count_nonzero(ok) < 3:
+        return 6
+    sigma = float(np.median(m.width[ok])) / _FWHM_PER_SIGMA
+    return int(np.clip(np.rint(2.7 * sigma), 3, 20))
+
+
+def _primary_and_secondary(img: NDArray, options: StripeOptions, noise: float, hw: int) -> _Peaks:
+    """All peaks of the working-orientation image (rows are scan lines)."""
+    H, W = img.shape
+    sat = _saturation_level(img, options)
+    min_contrast = options.min_contrast
+    if min_contrast is None:
+        min_contrast = 0.03 * (sat if np.isfinite(sat) else float(img.max()))
+    thr_contrast = max(options.k_noise * noise, float(min_contrast))
+
+    lines = np.arange(H)
+    cols = img.argmax(axis=1)
+    prim = _measure(img, lines, cols, hw, sat, noise)
+
+    # Lines where something else clears the threshold outside the primary's window are searched
+    # for further peaks; the common frame (one stripe, dark background) skips this entirely.
+    bg_level = _median(img[:: max(1, H // 48), :: max(1, W // 64)])
+    thr = bg_level + thr_contrast
+    if img.dtype == np.uint8:
+        _, mask = cv2.threshold(img, min(thr, 254.0), 1, cv2.THRESH_BINARY)
+    elif img.dtype == np.float32:
+        mask = cv2.threshold(img, thr, 1, cv2.THRESH_BINARY)[1].astype(np.uint8)
+    else:
+        mask = (img > thr).astype(np.uint8)
+    thr_img = thr
+    count_all = cv2.reduce(mask, 1, cv2.REDUCE_SUM, dtype=cv2.CV_32S).reshape(-1)
+    off = np.arange(-hw, hw + 1)
+    win = cols[:, None] + off
+    in_win = (
+        mask.reshape(-1).take(lines[:, None] * W + np.clip(win, 0, W - 1))
+        * ((win >= 0) & (win < W))
+    ).sum(axis=1)
+    extra = np.flatnonzero(count_all > in_win)
+    parts = [prim]
+    if extra.size:
+        parts.append(_secondary_peaks(img, extra, cols[extra], hw, sat, noise, thr_img))
+    peaks = _Peaks.concat(parts)
+
+    # Contrast thresholds: noise, absolute, and relative to the line's brightest peak.
+    best = np.zeros(H, np.float32)
+    np.maximum.at(best, peaks.line, peaks.contrast)
+    keep = (peaks.contrast >= thr_contrast) & (
+        peaks.contrast >= options.min_relative_peak * best[peaks.line]
+    )
+    peaks = peaks.take(np.flatnonzero(keep))
+    peaks = _dedupe(peaks, hw)
+    return peaks
+
+
+def _secondary_peaks(
+    img: NDArray,
+    lines: NDArray,
+    primary_cols: NDArray,
+    hw: int,
+    sat: float,
+    noise: float,
+    thr: float,
+) -> _Peaks:
+    """Local maxima above ``thr`` on ``lines``, away from the primary peak's window."""
+    sub = img[lines].astype(np.float32)
+    mx = ndimage.maximum_filter1d(sub, size=2 * hw + 1, axis=1, mode="nearest")
+    is_max = (sub >= mx) & (sub > thr)
+    # A plateau (saturation) gives a run of equal maxima: keep its first pixel only.
+    is_max[:, 1:] &= ~(is_max[:, :-1] & (sub[:, 1:] == sub[:, :-1]))
+    r, c = np.nonzero(is_max)
+    far = np.abs(c - primary_cols[r]) > hw
+    # Also drop pixels inside a saturated run that continues from the primary peak.
+    r, c = r[far], c[far]
+    if r.size == 0:
+        return _empty_peaks()
+    return _measure(img, lines[r], c, hw, sat, noise)
+
+
+def _empty_peaks() -> _Peaks:
+    return _Peaks(
+        np.zeros(0, np.int64),
+        np.zeros(0),
+        np.zeros(0, np.float32),
+        np.zeros(0, np.float32),
+        np.zeros(0, np.float32),
+        np.zeros(0, np.uint8),
+        np.zeros(0, np.float32),
+    )
+
+
+def _dedupe(peaks: _Peaks, hw: int) -> _Peaks:
+    """Merge peaks of one line that landed within a window of each other (keep the brighter)."""
+    if peaks.line.size < 2:
+        return peaks
+    order = np.lexsort((peaks.pos, peaks.line))
+    p = peaks.take(order)
+    same = (p.line[1:] == p.line[:-1]) & (np.abs(p.pos[1:] - p.pos[:-1]) <= hw)
+    if not np.any(same):
+        return p
+    drop = np.zeros(p.line.size, bool)
+    idx = np.flatnonzero(same)
+    weaker_first = p.contrast[idx] < p.contrast[idx + 1]
+    drop[np.where(weaker_first, idx, idx + 1)] = True
+    keep_idx = np.flatnonzero(~drop)
+    out = p.take(keep_idx)
+    # The kept neighbour of a merged pair saw two maxima in its window.
+    merged_into = np.where(weaker_first, idx + 1, idx)
+    amb = np.zeros(p.line.size, bool)
+    amb[merged_into] = True
+    out.flags[amb[keep_idx]] |= np.uint8(StripeFlag.AMBIGUOUS)
+    return out
+
+
+def _segments(peaks: _Peaks, link_px: float) -> NDArray:
+    """Segment label per peak: chains of peaks on consecutive lines within ``link_px``."""
+    n = peaks.line.size
+    order = np.lexsort((peaks.pos, peaks.line))
+    line = peaks.line[order]
+    pos = peaks.pos[order]
+    # Nearest peak on the previous line, via a sorted key line * big + pos.
+    big = float(max(1e6, pos.max() + 10 * link_px + 1))
+    key = line * big + pos
+    target = (line - 1) * big + pos
+    j = np.searchsorted(key, target)
+    src, dst = [], []
+    for cand in (j - 1, j):
+        ok = (cand >= 0) & (cand < n)
+        cc = np.clip(cand, 0, n - 1)
+        ok &= (line[cc] == line - 1) & (np.abs(pos[cc] - pos) <= link_px)
+        src.append(np.flatnonzero(ok))
+        dst.append(cc[ok])
+    s = np.concatenate(src)
+    d = np.concatenate(dst)
+    graph = coo_matrix((np.ones(s.size), (s, d)), shape=(n, n))
+    _, labels_sorted = connected_components(graph, directed=False)
+    labels = np.empty(n, np.int64)
+    labels[order] = labels_sorted
+    return labels
+
+
+def _resolve_multi(peaks: _Peaks, options: StripeOptions) -> _Peaks:
+    """Drop reflections, flag ambiguity and secondary segments on lines with several peaks."""
+    n = peaks.line.size
+    if n < 2:
+        return peaks
+    counts = np.bincount(peaks.line)
+    multi_line = counts[peaks.line] > 1
+    if not np.any(multi_line):
+        return peaks
+    labels = _segments(peaks, options.link_px)
+    best = np.zeros(counts.size, np.float32)
+    np.maximum.at(best, peaks.line, peaks.contrast)
+    is_best = peaks.contrast >= best[peaks.line]
+    ratio = peaks.contrast / np.maximum(best[peaks.line], 1e-6)
+    # A segment is a reflection when none of its peaks is alone on its line and each stays
+    # below reflection_ratio of its line's brightest peak.
+    n_lab = int(labels.max()) + 1
+    alone = np.zeros(n_lab, bool)
+    alone[labels[~multi_line]] = True
+    strong = np.zeros(n_lab, bool)
+    strong[labels[ratio >= options.reflection_ratio]] = True
+    reflection = ~alone[labels] & ~strong[labels] & ~is_best
+    peaks.flags[multi_line & ~is_best] |= np.uint8(StripeFlag.SECONDARY)
+    amb_lines = np.unique(peaks.line[reflection])
+    amb = np.isin(peaks.line, amb_lines)
+    peaks.flags[amb] |= np.uint8(StripeFlag.AMBIGUOUS)
+    if options.keep_reflections:
+        return peaks
+    return peaks.take(np.flatnonzero(~reflection))
+
+
+# --------------------------------------------------------------------------------------------
+# precise mode: Steger at the fast estimate
+
+
+def _gauss_kernels(x: NDArray, sigma: float) -> tuple[NDArray, NDArray, NDArray]:
+    """Sampled Gaussian and its first and second derivatives at ``x`` (any shape)."""
+    g = np.exp(-0.5 * (x / sigma) ** 2)
+    g /= np.sqrt(2 * np.pi) * sigma
+    g1 = -x / sigma**2 * g
+    g2 = (x**2 / sigma**4 - 1.0 / sigma**2) * g
+    return g, g1, g2
+
+
+def _refine_precise(img: NDArray, peaks: _Peaks, sigma: float) -> tuple[NDArray, NDArray]:
+    """Steger refinement of ``peaks`` (working orientation). Returns ``(pos, v_offset)``.
+
+    ``pos`` is the centre on the scan line; ``v_offset`` is 0 where the point was slid back onto
+    its line and the across-line offset otherwise (kept for stripes parallel to the lines).
+    """
+    H, W = img.shape
+    R = int(np.ceil(3.0 * sigma))
+    n = peaks.line.size
+    pos = peaks.pos.copy()
+    voff = np.zeros(n)
+    sat = (peaks.flags & StripeFlag.SATURATED) != 0
+    c0 = np.rint(pos).astype(np.int64)
+    delta = pos - c0
+    j = np.arange(-R, R + 1)
+    rows = peaks.line[:, None] + j[None, :]
+    cols = c0[:, None] + j[None, :]
+    rows_in = np.all((rows >= 0) & (rows < H), axis=1)
+    cols_in = np.all((cols >= 0) & (cols < W), axis=1)
+    rc = np.clip(rows, 0, H - 1)
+    cc = np.clip(cols, 0, W - 1)
+    flat = img.reshape(-1)
+    patch = flat.take(rc[:, :, None] * W + cc[:, None, :]).astype(np.float32)  # (n, P, P)
+
+    # Kernels along the line evaluated at the fast estimate: (I * g')(pos) = sum I(c) g'(pos - c).
+    ku = _gauss_kernels(delta[:, None] - j[None, :], sigma)
+    ku = tuple(k.astype(np.float32) for k in ku)
+    ku0 = ku[0] / ku[0].sum(axis=1, keepdims=True)
+    kv0, kv1, kv2 = (k.astype(np.float32) for k in _gauss_kernels(-j.astype(np.float64), sigma))
+    kv0 = kv0 / kv0.sum()
+    # Contract along u (last axis) with the three per-point kernels, then along v.
+    a0 = np.einsum("npq,nq->np", patch, ku0)
+    a1 = np.einsum("npq,nq->np", patch, ku[1])
+    a2 = np.einsum("npq,nq->np", patch, ku[2])
+    ru = a1 @ kv0
+    ruu = a2 @ kv0
+    rv = a0 @ kv1
+    rvv = a0 @ kv2
+    ruv = a1 @ kv1
+    # The local background's slope along the line biases the gradient of an asymmetric profile.
+    ru = ru - peaks.slope
+
+    # 1-D estimate along the centre row (lines at the image's top and bottom).
+    mid = patch[:, R, :]
+    r1 = (mid * ku[1]).sum(axis=1) - peaks.slope
+    r2 = (mid * ku[2]).sum(axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1 = -r1 / r2
+    # 2-D: cross direction = eigenvector of the most negative Hessian eigenvalue.
+    tr_half = 0.5 * (ruu + rvv)
+    disc = np.sqrt(0.25 * (ruu - rvv) ** 2 + ruv**2)
+    lam = tr_half - disc  # most negative
+    nu = ruv
+    nv = lam - ruu
+    # Fall back to the other eigenvector form where this one degenerates.
+    alt = np.abs(nu) + np.abs(nv) < 1e-12
+    nu = np.where(alt, lam - rvv, nu)
+    nv = np.where(alt, ruv, nv)
+    norm = np.hypot(nu, nv)
+    norm = np.where(norm > 0, norm, 1.0)
+    nu, nv = nu / norm, nv / norm
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = -(ru * nu + rv * nv) / lam
+        du, dv = t * nu, t * nv
+        # Slide along the stripe (tangent (-nv, nu)) back onto the scan line.
+        tu, tv = -nv, nu
+        s = -dv / tv
+        on_line = du + s * tu
+    steep = np.abs(tv) > 0.3
+    use2d = rows_in & cols_in & (lam < 0) & np.isfinite(on_line) & steep & (np.abs(on_line) < 1.5)
+    use1d = ~use2d & cols_in & (r2 < 0) & np.isfinite(t1) & (np.abs(t1) < 1.5)
+    pos = np.where(use2d, pos + on_line, pos)
+    pos = np.where(use1d, peaks.pos + t1, pos)
+    # Saturated peaks keep the saturated-run centre: the Taylor model of a flat top is wrong.
+    pos = np.where(sat, peaks.pos, pos)
+    return pos, voff
+
+
+# --------------------------------------------------------------------------------------------
+# public entry
+
+
+def _as_gray(image: NDArray, name: str) -> NDArray:
+    img = np.asarray(image)
+    if img.ndim != 2:
+        raise ValueError(f"{name}: expected a 2-D grey image (H, W), got shape {img.shape}")
+    if img.dtype not in (np.uint8, np.uint16, np.float32, np.float64):
+        raise ValueError(f"{name}: expected uint8, uint16 or float image, got {img.dtype}")
+    if img.shape[0] < 8 or img.shape[1] < 8:
+        raise ValueError(f"{name}: expected at least 8x8 pixels, got {img.shape[1]}x{img.shape[0]}")
+    if img.dtype == np.float64:
+        img = img.astype(np.float32)
+    return np.ascontiguousarray(img)
+
+
+def extract_stripe(
+    image: NDArray,
+    mode: str = "fast",
+    orientation: str = "auto",
+    background: NDArray | None = None,
+    options: StripeOptions | None = None,
+    **overrides: Any,
+) -> StripeProfile:
+    """Extract the laser stripe's sub-pixel centres from one frame.
+
+    Parameters
+    ----------
+    image : ndarray, shape (H, W), uint8, uint16 or float
+        The laser-on frame.
+    mode : {"fast", "precise"}
+        Windowed centre of gravity, or Steger's Hessian-based detector around it.
+    orientation : {"auto", "rows", "cols"}
+        ``"rows"``: each row is a scan line (stripe running top to bottom); ``"cols"``: each
+        column is; ``"auto"``: from the image's gradients. Prefer
+        :func:`orientation_from_calibration` once per sweep.
+    background : ndarray, shape (H, W), optional
+        A laser-off frame of the same pose: subtracted (clipped at zero) before the search.
+    options : StripeOptions, optional
+        Thresholds and windows; keyword ``overrides`` replace single fields.
+
+    Returns
+    -------
+    StripeProfile
+        Every genuine peak of every scan line, with quality flags.
+
+    Raises
+    ------
+    ValueError
+        Unknown mode or orientation, a non-2-D image, or a background of another shape.
+    """
+    if mode not in MODES:
+        raise ValueError(f"mode: expected one of {', '.join(MODES)}, got {mode!r}")
+    if orientation not in ORIENTATIONS:
+        raise ValueError(
+            f"orientation: expected one of {', '.join(ORIENTATIONS)}, got {orientation!r}"
+        )
+    opts = options or StripeOptions()
+    if overrides:
+        opts = StripeOptions(**{**opts.__dict__, **overrides})
+    img = _as_gray(image, "image")
+    if background is not None:
+        bg = _as_gray(background, "background")
+        if bg.shape != img.shape:
+            raise ValueError(f"background: expected the image's shape {img.shape}, got {bg.shape}")
+        if img.dtype in (np.uint8, np.uint16) and bg.dtype == img.dtype:
+            img = cv2.subtract(img, bg)
+        else:
+            img = np.clip(img.astype(np.float32) - bg.astype(np.float32), 0, None)
+    if orientation == "auto":
+        orientation = orientation_from_image(img)
+    work = img if orientation == "rows" else cv2.transpose(img)
+    noise = float(opts.noise) if opts.noise is not None else estimate_noise(work)
+
+    hw = opts.half_window_px
+    hw = auto_half_window(work, noise) if hw is None else int(hw)
+    peaks = _primary_and_secondary(work, opts, noise, hw)
+    peaks = _resolve_multi(peaks, opts)
+    if peaks.line.size == 0:
+        empty = StripeProfile.empty(orientation, mode)
+        return StripeProfile(
+            empty.u,
+            empty.v,
+            empty.intensity,
+            empty.width_px,
+            empty.flags,
+            empty.line,
+            orientation,
+            mode,
+            noise,
+        )
+    if peaks.line.size >= 4:
+        typical = float(np.median(peaks.contrast))
+        low = peaks.contrast < opts.low_contrast_ratio * typical
+        peaks.flags[low] |= np.uint8(StripeFlag.LOW_CONTRAST)
+
+    pos = peaks.pos
+    across = peaks.line.astype(np.float64)
+    if mode == "precise":
+        if opts.sigma_px is not None:
+            sigma = float(opts.sigma_px)
+        else:
+            sigma = float(np.clip(np.median(peaks.width) / _FWHM_PER_SIGMA, 1.0, 3.0))
+        pos, voff = _refine_precise(work, peaks, sigma)
+        across = across + voff
+    order = np.lexsort((pos, peaks.line))
+    if orientation == "rows":
+        u, v = pos[order], across[order]
+    else:
+        u, v = across[order], pos[order]
+    return StripeProfile(
+        u=np.ascontiguousarray(u, dtype=np.float64),
+        v=np.ascontiguousarray(v, dtype=np.float64),
+        intensity=peaks.peak[order].astype(np.float32),
+        width_px=peaks.width[order].astype(np.float32),
+        flags=peaks.flags[order].astype(np.uint8),
+        line=peaks.line[order].astype(np.int32),
+        orientation=orientation,
+        mode=mode,
+        noise=noise,
+    )
