@@ -457,7 +457,7 @@ def paper_light_plane(
     L = np.vstack(pts)
     # Eq. (9): a x + b y + c z + d = 0 with d fixed: L psi = -d.
     psi = np.linalg.lstsq(L, -d_scale * np.ones(len(L)), rcond=None)[0]
-    plane = LightPlane(psi, d_scale)
+    plane = LightPlane(-psi, -d_scale) if d_scale > 0 else LightPlane(psi, d_scale)
     fit = fit_plane(L)  # for the uncertainty figures only
     r = plane.signed_distance(L)
     per_frame = []

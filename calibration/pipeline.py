@@ -1,0 +1,480 @@
+"""``scanner calibrate`` as a function: a calibration session in, a calibration file out.
+
+Stages, each reported in the result's ``quality``:
+
+1. detection on every target image (:func:`calibration.detect.detect_target`);
+2. intrinsics on every target image, posed and unposed (:mod:`calibration.intrinsics`);
+3. stripe extraction on every laser image (:mod:`scanner.scanning.stripe`);
+4. light plane (:mod:`calibration.light_plane`);
+5. extrinsics of every view (:mod:`calibration.extrinsics`);
+6. hand-eye (:mod:`calibration.hand_eye`).
+
+``method="default"`` uses every target feature and the robust, jointly adjusted solutions;
+``method="paper"`` runs the paper's stages (III.A-D), available only with the
+concentric-circles target.
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from calibration.detect import detect_target
+from calibration.extrinsics import estimate_pose, paper_pose
+from calibration.hand_eye import (
+    HandEyeResult,
+    PosedView,
+    StripePointView,
+    calibrate_hand_eye,
+    paper_hand_eye,
+)
+from calibration.light_plane import (
+    LaserView,
+    LightPlaneResult,
+    PaperPlaneView,
+    calibrate_light_plane,
+    paper_light_plane,
+)
+from calibration.observations import TargetObservation
+from scanner.calibration_file import Calibration
+from scanner.camera import CameraModel, intersect_rays_with_plane
+from scanner.session import Frame, Session
+from scanner.targets import ChessboardTarget, ConcentricCirclesTarget, TargetSpec
+
+__all__ = ["CalibrationResult", "calibrate_session", "stripe_pixel_at", "target_extent_mm"]
+
+logger = logging.getLogger(__name__)
+
+METHODS = ("default", "paper")
+
+
+@dataclass
+class CalibrationResult:
+    """Everything ``scanner calibrate`` found, and the calibration file it writes.
+
+    Attributes
+    ----------
+    calibration : Calibration
+        The file's content; ``calibration.quality`` is the rich quality record.
+    observations : dict of int to TargetObservation
+        Detection per frame id (target images only).
+    stripes : dict of int to ndarray, shape (N, 2)
+        Stripe centres per frame id (laser images only).
+    cam_from_target : dict of int to ndarray, shape (4, 4)
+        Extrinsics per frame id.
+    light_plane : LightPlaneResult
+    hand_eye : HandEyeResult
+    intrinsics : object
+        The :class:`calibration.intrinsics.IntrinsicsResult`.
+    session : Session
+    """
+
+    calibration: Calibration
+    observations: dict[int, TargetObservation]
+    stripes: dict[int, NDArray]
+    cam_from_target: dict[int, NDArray]
+    light_plane: LightPlaneResult
+    hand_eye: HandEyeResult
+    intrinsics: Any
+    session: Session
+    extras: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def quality(self) -> dict[str, Any]:
+        return self.calibration.quality
+
+
+def target_extent_mm(target: TargetSpec) -> tuple[float, float, float, float]:
+    """``(xmin, xmax, ymin, ymax)`` of the part of the target known to be flat and printed."""
+    if isinstance(target, ConcentricCirclesTarget):
+        r = target.radius_mm * 1.05
+        return (-r, r, -r, r)
+    if isinstance(target, ChessboardTarget):
+        cols, rows = target.inner_corners
+        s = target.square_mm
+        return (-s, cols * s, -s, rows * s)
+    pts = target.object_points()
+    p = target.pitch_mm
+    return (
+        float(pts[:, 0].min() - p),
+        float(pts[:, 0].max() + p),
+        float(pts[:, 1].min() - p),
+        float(pts[:, 1].max() + p),
+    )
+
+
+def stripe_pixel_at(
+    stripe_px: NDArray, point_px: NDArray, reach_px: float = 30.0
+) -> tuple[NDArray, float] | None:
+    """The stripe's pixel nearest ``point_px`` and their distance (the stripe's local line).
+
+    A line is fitted to the stripe points within ``reach_px`` of the point and the point is
+    projected onto it. None when fewer than 5 stripe points lie that close.
+    """
+    if len(stripe_px) == 0:
+        return None
+    d = np.linalg.norm(stripe_px - point_px, axis=1)
+    near = stripe_px[d < reach_px]
+    if len(near) < 5:
+        return None
+    c = near.mean(axis=0)
+    _, _, vt = np.linalg.svd(near - c)
+    direction = vt[0]
+    foot = c + direction * float((point_px - c) @ direction)
+    return foot, float(np.linalg.norm(point_px - foot))
+
+
+def _read_aims(session: Session) -> dict[int, str]:
+    """The optional ``aim`` column of frames.csv (O, A, C: where the stripe was aimed)."""
+    path = session.root / "frames.csv"
+    out: dict[int, str] = {}
+    try:
+        with open(path, newline="", encoding="utf-8") as fh:
+            for row in csv.DictReader(fh):
+                aim = (row.get("aim") or "").strip().upper()
+                if aim:
+                    out[int(row["id"])] = aim
+    except (OSError, ValueError, KeyError):
+        return {}
+    return out
+
+
+def _progress(iterable: Any, enabled: bool, desc: str, total: int | None = None) -> Any:
+    if not enabled:
+        return iterable
+    from tqdm import tqdm
+
+    return tqdm(iterable, desc=desc, total=total, unit="img", leave=False)
+
+
+def _extract(session: Session, frame: Frame) -> NDArray:
+    from scanner.scanning.stripe import extract_stripe
+
+    image = session.load_laser_image(frame)
+    background = None
+    if frame.laser_off_image is not None:
+        from scanner.fileio import load_gray_image
+
+        background = load_gray_image(frame.laser_off_image, laser=True)
+    prof = extract_stripe(image, mode="precise", background=background)
+    # Keep clean points only: no reflections, saturation or secondary segments.
+    bad = 1 | 2 | 16
+    keep = (prof.flags & bad) == 0
+    return np.column_stack([prof.u[keep], prof.v[keep]])
+
+
+def _paper_plane_views(
+    frames: list[Frame],
+    observations: dict[int, TargetObservation],
+    stripes: dict[int, NDArray],
+    max_dist_px: float = 2.0,
+) -> list[PaperPlaneView]:
+    """Unposed rows whose stripe lies along the diameter A-O-B (the paper's light-plane rows)."""
+    views = []
+    for f in frames:
+        obs = observations.get(f.id)
+        st = stripes.get(f.id)
+        if f.has_pose or obs is None or not obs or st is None or len(st) < 20:
+            continue
+        if not all(k in obs.named_px for k in ("A", "O", "B")):
+            continue
+        snapped = []
+        for name in ("A", "O", "B"):
+            hit = stripe_pixel_at(st, np.asarray(obs.named_px[name], float))
+            if hit is None or hit[1] > max_dist_px:
+                break
+            snapped.append(hit[0])
+        if len(snapped) == 3:
+            views.append(PaperPlaneView(f.id, snapped[0], snapped[1], snapped[2]))
+    return views
+
+
+def calibrate_session(
+    session: Session,
+    method: Literal["default", "paper"] = "default",
+    progress: bool = True,
+    refine_intrinsics: bool = False,
+    on_stage: Callable[[str], None] | None = None,
+) -> CalibrationResult:
+    """Calibrate intrinsics, light plane and hand-eye from one calibration session.
+
+    Parameters
+    ----------
+    session : Session
+        A ``calibration`` session with a target; unposed rows (target moved by hand) and posed
+        rows (target fixed in the base), each with a target image and/or a laser image.
+    method : {"default", "paper"}
+        ``"paper"`` needs the concentric-circles target.
+    progress : bool
+        Show progress bars (stderr).
+    refine_intrinsics : bool
+        Let the hand-eye adjustment refine the intrinsics too.
+    on_stage : callable, optional
+        Called with the name of each stage as it starts.
+
+    Returns
+    -------
+    CalibrationResult
+
+    Raises
+    ------
+    ValueError
+        Saying what is missing: wrong session kind, the paper method on a standard target, too
+        few target images found, no usable laser frames, degenerate robot motion.
+    """
+    if method not in METHODS:
+        raise ValueError(f"method: expected one of {', '.join(METHODS)}, got {method!r}")
+    if session.kind != "calibration":
+        raise ValueError(f"session kind: expected 'calibration', got {session.kind!r}")
+    target = session.target
+    if target is None:
+        raise ValueError("session: a calibration session needs a target")
+    if method == "paper" and not isinstance(target, ConcentricCirclesTarget):
+        raise ValueError(
+            f"method 'paper' needs the concentric-circles target; this session uses a {target.kind} "
+            "(use --method default)"
+        )
+    stage = on_stage or (lambda name: logger.info("stage: %s", name))
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+
+    # 1. detection
+    stage("detect")
+    observations: dict[int, TargetObservation] = {}
+    rejected: list[dict[str, Any]] = []
+    with_target = [f for f in session.frames if f.target_image is not None]
+    for f in _progress(with_target, progress, "detect"):
+        obs = detect_target(session.load_target_image(f), target)
+        observations[f.id] = obs
+        if not obs:
+            rejected.append({"frame_id": f.id, "stage": "detect", "reason": obs.reason})
+    found = [f for f in with_target if observations[f.id]]
+    if not found:
+        raise ValueError(f"target not found in any of the {len(with_target)} target images")
+    timings["detect_s"] = time.perf_counter() - t0
+
+    # 2. intrinsics
+    stage("intrinsics")
+    t1 = time.perf_counter()
+    from calibration.intrinsics import calibrate_intrinsics
+
+    intr = calibrate_intrinsics(
+        [observations[f.id] for f in found],
+        (session.width, session.height),
+        method=method,
+        target=target,
+    )
+    for idx, why in intr.rejected:
+        rejected.append({"frame_id": found[idx].id, "stage": "intrinsics", "reason": why})
+    camera = CameraModel(session.width, session.height, intr.K, intr.dist)
+    timings["intrinsics_s"] = time.perf_counter() - t1
+
+    # 3. extrinsics of every view with the target found
+    stage("extrinsics")
+    t1 = time.perf_counter()
+    cam_from_target: dict[int, NDArray] = {}
+    extrinsics_q: list[dict[str, Any]] = []
+    for f in found:
+        obs = observations[f.id]
+        pose = estimate_pose(obs.points_px, obs.points_target, camera)
+        if not pose:
+            rejected.append({"frame_id": f.id, "stage": "extrinsics", "reason": pose.reason})
+            continue
+        cam_from_target[f.id] = pose.cam_from_target  # type: ignore[assignment]
+        extrinsics_q.append(
+            {
+                "frame_id": f.id,
+                "rms_px": pose.rms_px,
+                "std_rotation_deg": pose.std_rotation_deg.tolist(),
+                "std_translation_mm": pose.std_translation_mm.tolist(),
+            }
+        )
+    timings["extrinsics_s"] = time.perf_counter() - t1
+
+    # 4. stripes
+    stage("stripes")
+    t1 = time.perf_counter()
+    stripes: dict[int, NDArray] = {}
+    with_laser = [f for f in session.frames if f.laser_image is not None]
+    for f in _progress(with_laser, progress, "stripes"):
+        stripes[f.id] = _extract(session, f)
+    timings["stripes_s"] = time.perf_counter() - t1
+
+    # 5. light plane
+    stage("light plane")
+    t1 = time.perf_counter()
+    extent = target_extent_mm(target)
+    laser_views = [
+        LaserView(f.id, stripes[f.id], cam_from_target[f.id], extent)
+        for f in with_laser
+        if f.id in cam_from_target and len(stripes[f.id])
+    ]
+    plane_default = calibrate_light_plane(laser_views, camera)
+    plane_paper = None
+    if isinstance(target, ConcentricCirclesTarget):
+        pviews = _paper_plane_views(session.frames, observations, stripes)
+        plane_paper = paper_light_plane(pviews, camera, target.radius_mm)
+    plane_res = plane_paper if method == "paper" else plane_default
+    if plane_res is None or not plane_res:
+        why = plane_res.reason if plane_res is not None else "no light-plane views"
+        raise ValueError(f"light plane ({method}): {why}")
+    for r in plane_res.rejected:
+        rejected.append({"frame_id": r["frame_id"], "stage": "light plane", "reason": r["reason"]})
+    timings["light_plane_s"] = time.perf_counter() - t1
+
+    # 6. hand-eye
+    stage("hand-eye")
+    t1 = time.perf_counter()
+    posed = [f for f in found if f.has_pose and f.id in cam_from_target]
+    if method == "paper":
+        he = _paper_hand_eye(session, posed, observations, stripes, camera, plane_res, target)  # type: ignore[arg-type]
+    else:
+        views = [
+            PosedView(
+                f.id,
+                f.base_from_flange,  # type: ignore[arg-type]
+                observations[f.id].points_px,
+                observations[f.id].points_target,
+                cam_from_target[f.id],
+            )
+            for f in posed
+        ]
+        he = calibrate_hand_eye(views, camera, "default", refine_intrinsics=refine_intrinsics)
+    if not he:
+        raise ValueError(f"hand-eye ({method}): {he.reason}")
+    if he.camera is not None and refine_intrinsics:
+        camera = he.camera
+    timings["hand_eye_s"] = time.perf_counter() - t1
+    timings["total_s"] = time.perf_counter() - t0
+
+    warnings = list(intr.warnings) + list(he.warnings)
+    verdict, check = _verdict(intr, plane_res, he, rejected)
+    quality: dict[str, Any] = {
+        "method": method,
+        "verdict": verdict,
+        "check_frames": check,
+        "target_kind": target.kind,
+        "frames": len(session.frames),
+        "intrinsics": {
+            "method": intr.method,
+            "rms_px": float(intr.rms_px),
+            "std": {k: float(v) for k, v in intr.std.items()},
+            "per_view_rms_px": {
+                str(found[i].id): float(r) for i, r in zip(intr.view_indices, intr.per_view_rms_px)
+            },
+        },
+        "extrinsics": extrinsics_q,
+        "light_plane": plane_res.quality(),
+        "hand_eye": he.quality(),
+        "rejected": rejected,
+        "warnings": warnings,
+        "timings": timings,
+    }
+    if method == "default" and plane_paper is not None and plane_paper:
+        quality["light_plane_paper"] = {
+            "normal": plane_paper.plane.normal.tolist(),  # type: ignore[union-attr]
+            "d": plane_paper.plane.d,  # type: ignore[union-attr]
+            "rms_mm": plane_paper.rms_mm,
+        }
+    calib = Calibration(
+        width=session.width,
+        height=session.height,
+        K=camera.K,
+        dist=camera.dist,
+        light_plane=plane_res.plane,  # type: ignore[arg-type]
+        flange_from_cam=he.flange_from_cam,  # type: ignore[arg-type]
+        quality=quality,
+    )
+    return CalibrationResult(
+        calib,
+        observations,
+        stripes,
+        cam_from_target,
+        plane_res,
+        he,
+        intr,
+        session,
+        extras={"light_plane_default": plane_default, "light_plane_paper": plane_paper},
+    )
+
+
+def _paper_hand_eye(
+    session: Session,
+    posed: list[Frame],
+    observations: dict[int, TargetObservation],
+    stripes: dict[int, NDArray],
+    camera: CameraModel,
+    plane: LightPlaneResult,
+    target: ConcentricCirclesTarget,
+    max_dist_px: float = 3.0,
+) -> HandEyeResult:
+    """Collect the views with the stripe on O, A, C and run :func:`paper_hand_eye`."""
+    aims = _read_aims(session)
+    lp = plane.plane
+    if lp is None:
+        return HandEyeResult(False, "paper hand-eye: no light plane", method="paper")
+    views: list[StripePointView] = []
+    for f in posed:
+        obs = observations[f.id]
+        st = stripes.get(f.id)
+        if st is None:
+            continue
+        candidates = [aims[f.id]] if f.id in aims else ["O", "A", "C"]
+        best = None
+        for name in candidates:
+            if name not in obs.named_px:
+                continue
+            hit = stripe_pixel_at(st, np.asarray(obs.named_px[name], float))
+            if hit is not None and hit[1] <= max_dist_px and (best is None or hit[1] < best[2]):
+                best = (name, hit[0], hit[1])
+        if best is None:
+            continue
+        name, px, _ = best
+        p_cam = intersect_rays_with_plane(camera.rays(px.reshape(1, 2)), lp.normal, lp.d)[0]
+        if not np.all(np.isfinite(p_cam)):
+            continue
+        ct = None
+        if (
+            name == "O"
+            and all(k in obs.vanishing_points for k in ("p", "q"))
+            and all(k in obs.named_px for k in ("O", "A", "C"))
+        ):
+            pose = paper_pose(
+                camera,
+                obs.vanishing_points["p"],
+                obs.vanishing_points["q"],
+                obs.named_px["O"],
+                obs.named_px["A"],
+                obs.named_px["C"],
+                px,
+                lp,
+            )
+            ct = pose.cam_from_target if pose else None
+        views.append(StripePointView(f.id, name, f.base_from_flange, p_cam, ct))  # type: ignore[arg-type]
+    return paper_hand_eye(views, target.radius_mm)
+
+
+def _verdict(
+    intr: Any, plane: LightPlaneResult, he: HandEyeResult, rejected: list[dict[str, Any]]
+) -> tuple[str, list[int]]:
+    """``"good"`` or ``"check these frames: ..."`` with the frames to look at."""
+    check: set[int] = {int(r["frame_id"]) for r in rejected}
+    rms = [p["rms_px"] for p in he.per_pose if "rms_px" in p]
+    if rms:
+        med = float(np.median(rms))
+        check |= {int(p["frame_id"]) for p in he.per_pose if p.get("rms_px", 0) > max(3 * med, 1.0)}
+    per = [p["rms_mm"] for p in plane.per_frame]
+    if per:
+        med = float(np.median(per))
+        check |= {int(p["frame_id"]) for p in plane.per_frame if p["rms_mm"] > max(3 * med, 0.05)}
+    if not check:
+        return "good", []
+    ids = sorted(check)
+    return "check these frames: " + ", ".join(str(i) for i in ids), ids

@@ -1,0 +1,221 @@
+"""The HTML calibration report: what was found, how well, and which frames to look at.
+
+One self-contained page (:mod:`scanner.reporting`): the verdict line, every figure with its
+uncertainty, detected features drawn over a few images, residuals per image and per pose,
+the light-plane fit and the hand-eye residuals.
+"""
+
+from __future__ import annotations
+
+import html
+import logging
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from calibration.pipeline import CalibrationResult
+from scanner import reporting as rep
+
+__all__ = ["write_calibration_report"]
+
+logger = logging.getLogger(__name__)
+
+
+def _fmt(value: float, std: float | None = None, decimals: int = 4, unit: str = "") -> str:
+    if value is None or not np.isfinite(value):
+        return "n/a"
+    s = f"{value:.{decimals}f}"
+    if std is not None and np.isfinite(std):
+        s += f" ± {std:.{decimals}f}"
+    return f"{s} {unit}".strip()
+
+
+def _features_figure(result: CalibrationResult, max_images: int = 3) -> str:
+    html = ""
+    shown = 0
+    for fid, obs in result.observations.items():
+        if not obs or shown >= max_images:
+            continue
+        frame = next(f for f in result.session.frames if f.id == fid)
+        try:
+            img = result.session.load_target_image(frame)
+        except (OSError, ValueError) as exc:
+            logger.debug("report: cannot load frame %s: %s", fid, exc)
+            continue
+        fig = Figure(figsize=(6.4, 6.4 * img.shape[0] / img.shape[1]))
+        ax = fig.add_axes((0, 0, 1, 1))
+        ax.imshow(img, cmap="gray")
+        ax.plot(obs.points_px[:, 0], obs.points_px[:, 1], "+", color="lime", ms=6)
+        for name, p in obs.named_px.items():
+            ax.annotate(name, p, color="yellow", fontsize=10)
+        st = result.stripes.get(fid)
+        if st is not None and len(st):
+            ax.plot(st[::5, 0], st[::5, 1], ".", color="red", ms=1)
+        ax.set_axis_off()
+        html += rep.figure(
+            fig, f"frame {fid}: {len(obs.points_px)} features detected", width_px=480
+        )
+        shown += 1
+    return html
+
+
+def _bar(ids: list[Any], values: list[float], ylabel: str, title: str) -> Figure:
+    fig = Figure(figsize=(7, 2.6))
+    ax = fig.add_subplot(1, 1, 1)
+    ax.bar([str(i) for i in ids], values, color="#4477aa")
+    ax.set_ylabel(ylabel)
+    ax.set_xlabel("frame")
+    ax.set_title(title)
+    ax.tick_params(axis="x", labelrotation=90, labelsize=7)
+    fig.tight_layout()
+    return fig
+
+
+def _plane_figure(result: CalibrationResult) -> Figure | None:
+    lp = result.light_plane
+    if lp.plane is None or len(lp.points_cam) == 0:
+        return None
+    pts = lp.points_cam
+    r = lp.plane.signed_distance(pts)
+    fig = Figure(figsize=(7, 3))
+    ax = fig.add_subplot(1, 2, 1)
+    ax.scatter(pts[:, 0], pts[:, 2], c=r * 1000, s=2, cmap="coolwarm")
+    ax.set_xlabel("x_cam (mm)")
+    ax.set_ylabel("z_cam (mm)")
+    ax.set_title("stripe points")
+    ax2 = fig.add_subplot(1, 2, 2)
+    ax2.hist(r * 1000, bins=50, color="#4477aa")
+    ax2.set_xlabel("distance to plane (µm)")
+    ax2.set_title(f"RMS {lp.rms_mm * 1000:.1f} µm")
+    fig.tight_layout()
+    return fig
+
+
+def write_calibration_report(
+    result: CalibrationResult, report_dir: str | os.PathLike[str], name: str = "calibration.html"
+) -> Path:
+    """Write the calibration report page and return its path.
+
+    Parameters
+    ----------
+    result : CalibrationResult
+    report_dir : path
+        Folder for the page (created if needed).
+    name : str
+        File name of the page.
+    """
+    q = result.calibration.quality
+    cal = result.calibration
+    intr = q["intrinsics"]
+    std = intr.get("std", {})
+    verdict = q["verdict"]
+    body = f'<p class="summary"><strong>Verdict: {html.escape(verdict)}</strong></p>\n'
+
+    body += rep.section(
+        "Camera",
+        rep.key_value_table(
+            {
+                "method": intr["method"],
+                "image": f"{cal.width} x {cal.height}",
+                "fx (px)": _fmt(cal.K[0, 0], std.get("fx"), 3),
+                "fy (px)": _fmt(cal.K[1, 1], std.get("fy"), 3),
+                "cx (px)": _fmt(cal.K[0, 2], std.get("cx"), 3),
+                "cy (px)": _fmt(cal.K[1, 2], std.get("cy"), 3),
+                "dist (k1 k2 p1 p2 k3)": " ".join(f"{d:.5g}" for d in cal.dist),
+                "reprojection RMS (px)": _fmt(intr["rms_px"], None, 4),
+            }
+        ),
+    )
+    lpq = q["light_plane"]
+    body += rep.section(
+        "Light plane (camera frame, n·p + d = 0)",
+        rep.key_value_table(
+            {
+                "method": lpq["method"],
+                "normal": " ".join(f"{v:.6f}" for v in cal.light_plane.normal),
+                "normal uncertainty (deg)": _fmt(lpq["std_normal_deg"], None, 5),
+                "d (mm)": _fmt(cal.light_plane.d, lpq["std_d_mm"], 4),
+                "residual RMS (mm)": _fmt(lpq["rms_mm"], None, 4),
+                "points": lpq["n_points"],
+                "frames used / rejected": f"{len(lpq['per_frame'])} / {len(lpq['rejected'])}",
+            }
+        )
+        + (
+            rep.figure(fig, "Stripe points in the camera frame and their distances to the plane")
+            if (fig := _plane_figure(result)) is not None
+            else ""
+        )
+        + (
+            rep.figure(
+                _bar(
+                    [p["frame_id"] for p in lpq["per_frame"]],
+                    [p["rms_mm"] * 1000 for p in lpq["per_frame"]],
+                    "RMS (µm)",
+                    "light plane residual per frame",
+                ),
+                "Light-plane residual RMS per frame",
+            )
+            if lpq["per_frame"]
+            else ""
+        ),
+    )
+    he = q["hand_eye"]
+    x = cal.flange_from_cam
+    body += rep.section(
+        "Hand-eye (flange_from_cam)",
+        rep.key_value_table(
+            {
+                "method": he["method"],
+                "translation (mm)": " ".join(
+                    _fmt(x[i, 3], he["std_translation_mm"][i], 3) for i in range(3)
+                ),
+                "rotation uncertainty (deg, about cam x y z)": " ".join(
+                    _fmt(v, None, 4) for v in he["std_rotation_deg"]
+                ),
+                "chain reprojection RMS (px)": _fmt(he["rms_px"], None, 3),
+                "target origin scatter in base, std x y z (mm)": " ".join(
+                    _fmt(v, None, 3) for v in he["target_spread_mm"]
+                ),
+                "closed forms tried (RMS px)": ", ".join(
+                    f"{k} {v:.3f}" for k, v in he.get("candidates_rms_px", {}).items()
+                )
+                or "n/a",
+                "matrix": "; ".join(" ".join(f"{v:.6f}" for v in row) for row in x),
+            }
+        )
+        + (
+            rep.figure(
+                _bar(
+                    [p["frame_id"] for p in he["per_pose"]],
+                    [p.get("rms_px", p.get("scatter_mm", np.nan)) for p in he["per_pose"]],
+                    "RMS (px)" if he["per_pose"] and "rms_px" in he["per_pose"][0] else "mm",
+                    "hand-eye residual per pose",
+                ),
+                "Hand-eye chain residual per pose",
+            )
+            if he["per_pose"]
+            else ""
+        ),
+    )
+    per_view = intr.get("per_view_rms_px", {})
+    if per_view:
+        body += rep.section(
+            "Residuals per image (intrinsics)",
+            rep.figure(
+                _bar(list(per_view), list(per_view.values()), "RMS (px)", "per image"),
+                "Intrinsics residual RMS per image",
+            ),
+        )
+    body += rep.section("Detected features", _features_figure(result))
+    rows = [(str(r["frame_id"]), f"{r['stage']}: {r['reason']}") for r in q["rejected"]]
+    rows += [("warning", w) for w in q["warnings"]]
+    if rows:
+        body += rep.section("Rejected frames and warnings", rep.key_value_table(rows))
+    body += rep.section(
+        "Timings", rep.key_value_table({k: f"{v:.2f}" for k, v in q.get("timings", {}).items()})
+    )
+    page = rep.page("Calibration report", body, subtitle=str(result.session.root))
+    return rep.write_page(Path(report_dir) / name, page)
