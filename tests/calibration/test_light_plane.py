@@ -74,7 +74,7 @@ def test_calibrate_light_plane_recovers_truth_and_rejects_a_bad_frame():
         ct = S.look_at_target(rng)
         views.append(LaserView(i, _stripe_on_target(cam, ct, rng), ct, (-100, 100, -100, 100)))
     # One frame whose stripe is shifted by 8 px (wrong target pose or another line).
-    views.append(LaserView(99, views[0].stripe_px + [0.0, 8.0], views[0].cam_from_target))
+    views.append(LaserView(99, views[0].stripe_px + np.array([0.0, 8.0]), views[0].cam_from_target))
     res = calibrate_light_plane(views, cam)
     assert res, res.reason
     assert _angle_deg(res.plane.normal, N_TRUE) < 0.01
