@@ -467,6 +467,19 @@ def _ransac(
     return best
 
 
+def _radius_bounds(
+    radius_range_mm: tuple[float, float] | None, sub: NDArray
+) -> tuple[float, float]:
+    """Radii a RANSAC hypothesis may have: the given range, else up to the sample's extent
+    (a sphere or cylinder much larger than the cloud is a plane in disguise)."""
+    if radius_range_mm is None:
+        return 0.0, _extent(sub)
+    lo, hi = (float(r) for r in radius_range_mm)
+    if not (0 <= lo < hi and math.isfinite(hi)):
+        raise ValueError(f"radius_range_mm: expected 0 <= min < max, got {radius_range_mm}")
+    return lo, hi
+
+
 def _check_threshold(threshold_mm: float | None) -> None:
     if threshold_mm is not None and not (math.isfinite(threshold_mm) and threshold_mm > 0):
         raise ValueError(f"threshold_mm: expected a positive number or None, got {threshold_mm}")
@@ -629,6 +642,7 @@ def fit_sphere(
     min_zone: bool = False,
     seed: SeedLike = 0,
     max_iterations: int = 1000,
+    radius_range_mm: tuple[float, float] | None = None,
 ) -> SphereFit:
     """Fit a sphere by orthogonal (radial) least squares, optionally after RANSAC.
 
@@ -640,6 +654,9 @@ def fit_sphere(
         RANSAC inlier distance; without it every point is an inlier.
     min_zone : bool
         Also evaluate the minimum-zone sphericity (``min_zone_mm``).
+    radius_range_mm : (float, float), optional
+        Radii a RANSAC hypothesis may have (e.g. nominal +-20 %); without it, at most the
+        cloud's extent, so that a plane is not taken for a huge sphere.
     seed : int or Generator
         Seeds RANSAC and the least-squares subsample.
 
@@ -658,6 +675,7 @@ def fit_sphere(
     mask = np.ones(n_all, dtype=bool)
     if threshold_mm is not None:
         sub = pts[_subsample(n_all, RANSAC_SUBSAMPLE, rng)]
+        r_lo, r_hi = _radius_bounds(radius_range_mm, sub)
 
         def model(idx: NDArray) -> Any:
             s = sub[idx]
@@ -666,7 +684,8 @@ def fit_sphere(
             if abs(np.linalg.det(a)) < 1e-9 * np.abs(a).max() ** 3:
                 return None
             c = np.linalg.solve(a, b)
-            return c, float(np.linalg.norm(s[0] - c))
+            r = float(np.linalg.norm(s[0] - c))
+            return (c, r) if r_lo <= r <= r_hi else None
 
         best = _ransac(
             len(sub), 4, model,
@@ -676,7 +695,7 @@ def fit_sphere(
         if best is None:
             return SphereFit(reason="degenerate: RANSAC found no sphere (coplanar points?)")
         mask = np.abs(_rownorm(pts - best[0]) - best[1]) < threshold_mm
-    rank = _degenerate_rank(pts[mask]) if np.count_nonzero(mask) >= 4 else -1
+    rank = _degenerate_rank(_take(pts, mask)) if np.count_nonzero(mask) >= 4 else -1
     if rank == -1:
         return SphereFit(
             reason=f"too few inliers: expected at least 4, got {np.count_nonzero(mask)}"
@@ -843,6 +862,7 @@ def fit_cylinder(
     *,
     seed: SeedLike = 0,
     max_iterations: int = 1000,
+    radius_range_mm: tuple[float, float] | None = None,
     axis_hint: ArrayLike | None = None,
 ) -> CylinderFit:
     """Fit a cylinder by orthogonal (radial) least squares, optionally after RANSAC.
@@ -854,6 +874,9 @@ def fit_cylinder(
     threshold_mm : float, optional
         RANSAC inlier distance (hypotheses from two points and their Open3D normals); without
         it every point is an inlier.
+    radius_range_mm : (float, float), optional
+        Radii a RANSAC hypothesis may have (e.g. nominal +-20 %); without it, at most the
+        cloud's extent, so that a plane is not taken for a huge sphere.
     seed : int or Generator
         Seeds RANSAC and the subsamples.
     axis_hint : array_like, shape (3,), optional
@@ -885,10 +908,12 @@ def fit_cylinder(
         pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(sub))
         pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=min(20, len(sub) - 1)))
         normals = np.asarray(pcd.normals)
+        r_lo, r_hi = _radius_bounds(radius_range_mm, sub)
 
         def model(idx: NDArray) -> Any:
             i, j = idx
-            return _cylinder_from_normals(sub[i], normals[i], sub[j], normals[j])
+            m = _cylinder_from_normals(sub[i], normals[i], sub[j], normals[j])
+            return m if m is not None and r_lo <= m[2] <= r_hi else None
 
         def dist(m: Any) -> NDArray:
             q = sub - m[1]
@@ -1038,6 +1063,7 @@ def fit_circle(
     *,
     seed: SeedLike = 0,
     max_iterations: int = 1000,
+    radius_range_mm: tuple[float, float] | None = None,
 ) -> CircleFit:
     """Fit a circle in 3-D by orthogonal least squares (3-D distance to the circle).
 
@@ -1048,6 +1074,9 @@ def fit_circle(
     threshold_mm : float, optional
         RANSAC inlier distance (3-D distance to the circle); without it every point is an
         inlier.
+    radius_range_mm : (float, float), optional
+        Radii a RANSAC hypothesis may have (e.g. nominal +-20 %); without it, at most the
+        cloud's extent, so that a plane is not taken for a huge sphere.
     seed : int or Generator
         Seeds RANSAC and the least-squares subsample.
 
@@ -1066,8 +1095,14 @@ def fit_circle(
     mask = np.ones(n_all, dtype=bool)
     if threshold_mm is not None:
         sub = pts[_subsample(n_all, RANSAC_SUBSAMPLE, rng)]
+        r_lo, r_hi = _radius_bounds(radius_range_mm, sub)
+
+        def model(idx: NDArray) -> Any:
+            m = _circle_from_3(*sub[idx])
+            return m if m is not None and r_lo <= m[2] <= r_hi else None
+
         best = _ransac(
-            len(sub), 3, lambda idx: _circle_from_3(*sub[idx]),
+            len(sub), 3, model,
             lambda m: _circle_distance(sub, *m), threshold_mm, rng, max_iterations,
         )  # fmt: skip
         if best is None:
