@@ -1,0 +1,568 @@
+"""Sweep sessions to a stitched cloud on disk: the ``scanner scan`` job.
+
+Frames stream through worker processes in chunks; each chunk's stripe profiles are saved as
+one ``.npz`` under a work folder named after a hash of the sessions, the calibration and the
+extraction options, so an interrupted run resumes where it stopped. The profiles are then
+triangulated in one batch (pixels to base frame), stitched into an Open3D tensor cloud with
+per-point ``intensity``, ``width_px``, ``flags``, ``frame_id``, ``sweep_id`` and written
+atomically.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import multiprocessing
+import os
+import shutil
+import time
+from collections.abc import Sequence
+from concurrent.futures import Executor, ProcessPoolExecutor, ThreadPoolExecutor
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from scanner.calibration_file import Calibration, read_calibration
+from scanner.fileio import InputError, atomic_output, load_gray_image
+from scanner.scanning.stripe import (
+    MODES,
+    StripeOptions,
+    extract_stripe,
+    orientation_from_calibration,
+)
+from scanner.session import Frame, Session, read_session
+
+__all__ = [
+    "ScanOptions",
+    "ScanResult",
+    "check_scan_inputs",
+    "scan_profiles",
+    "scan_session",
+]
+
+log = logging.getLogger(__name__)
+
+_PROFILE_KEYS = ("u", "v", "intensity", "width_px", "flags", "line")
+
+
+@dataclass(frozen=True)
+class ScanOptions:
+    """What ``scan_session`` does between frames and cloud.
+
+    Attributes
+    ----------
+    mode : {"fast", "precise"}
+        Stripe estimator.
+    orientation : {"calibration", "auto", "rows", "cols"}
+        Scan-line direction: from the light plane's image (default), the image, or fixed.
+    stripe : StripeOptions
+        Thresholds and windows of the extractor.
+    use_laser_off : bool
+        Subtract a frame's ``laser_image_off`` when the session gives one.
+    voxel_mm : float or None
+        Voxel downsampling of the final cloud.
+    outlier_neighbors, outlier_std_ratio
+        Statistical outlier removal (0 neighbours: off).
+    normals_radius_mm : float or None
+        Estimate normals with this search radius.
+    icp : bool
+        Refine overlapping sweeps against each other (reports the corrections).
+    icp_max_distance_mm, icp_warn_translation_mm, icp_warn_rotation_deg
+        ICP correspondence distance and the corrections that trigger a warning.
+    workers : int
+        Worker processes for the extraction (1: in this process).
+    chunk_frames : int
+        Frames per saved chunk (the unit of resumption).
+    """
+
+    mode: str = "fast"
+    orientation: str = "calibration"
+    stripe: StripeOptions = field(default_factory=StripeOptions)
+    use_laser_off: bool = True
+    voxel_mm: float | None = None
+    outlier_neighbors: int = 0
+    outlier_std_ratio: float = 2.0
+    normals_radius_mm: float | None = None
+    icp: bool = False
+    icp_max_distance_mm: float = 2.0
+    icp_warn_translation_mm: float = 0.2
+    icp_warn_rotation_deg: float = 0.1
+    workers: int = 2
+    chunk_frames: int = 32
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ValueError(f"mode: expected one of {', '.join(MODES)}, got {self.mode!r}")
+        if self.orientation not in ("calibration", "auto", "rows", "cols"):
+            raise ValueError(
+                f"orientation: expected calibration, auto, rows or cols, got {self.orientation!r}"
+            )
+        if self.voxel_mm is not None and self.voxel_mm < 0:
+            raise ValueError(f"voxel_mm: expected >= 0, got {self.voxel_mm}")
+        if self.workers < 1 or self.chunk_frames < 1:
+            raise ValueError(
+                f"workers, chunk_frames: expected >= 1, got {self.workers}, {self.chunk_frames}"
+            )
+
+    def extraction_key(self) -> dict[str, Any]:
+        """The options that change the saved profiles (part of the work-folder hash)."""
+        return {
+            "mode": self.mode,
+            "orientation": self.orientation,
+            "stripe": asdict(self.stripe),
+            "use_laser_off": self.use_laser_off,
+        }
+
+
+@dataclass
+class ScanResult:
+    """What a scan produced, for the command line's summary and for callers."""
+
+    out_path: Path | None
+    n_points: int
+    n_frames: int
+    n_sweeps: int
+    seconds: float
+    cloud: Any  # open3d.t.geometry.PointCloud
+    corrections: list = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+    chunks_resumed: int = 0
+    frames_without_stripe: int = 0
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+# --------------------------------------------------------------------------------------------
+# inputs
+
+
+def _as_sessions(session_or_sessions: Any) -> list[Session]:
+    items = (
+        list(session_or_sessions)
+        if isinstance(session_or_sessions, (list, tuple))
+        else [session_or_sessions]
+    )
+    if not items:
+        raise ValueError("sessions: expected at least one sweep session, got none")
+    out = []
+    for item in items:
+        out.append(item if isinstance(item, Session) else read_session(item, check_images=True))
+    return out
+
+
+def check_scan_inputs(sessions: Sequence[Session], calibration: Calibration) -> None:
+    """Refuse what cannot give a cloud, before any work, with a one-line reason.
+
+    Raises
+    ------
+    InputError
+        A session that is not a sweep, a frame without a pose or laser image, or an image
+        size other than the calibration's.
+    """
+    for s in sessions:
+        where = s.root / "session.json"
+        if s.kind != "sweep":
+            raise InputError(where, f"kind: expected 'sweep' for scanning, got {s.kind!r}")
+        if (s.width, s.height) != (calibration.width, calibration.height):
+            raise InputError(
+                where,
+                f"camera: images are {s.width}x{s.height}, the calibration is for "
+                f"{calibration.width}x{calibration.height}",
+            )
+        for f in s.frames:
+            if f.base_from_flange is None:
+                raise InputError(
+                    s.root / "frames.csv", f"frame {f.id}: a sweep frame needs a robot pose"
+                )
+            if f.laser_image is None:
+                raise InputError(s.root / "frames.csv", f"frame {f.id}: no laser_image")
+
+
+def _file_digest(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _work_key(sessions: Sequence[Session], calibration: Calibration, options: ScanOptions) -> str:
+    h = hashlib.sha256()
+    for s in sessions:
+        h.update(str(s.root.resolve()).encode())
+        for name in ("session.json", "frames.csv"):
+            p = s.root / name
+            if p.is_file():
+                h.update(_file_digest(p).encode())
+    h.update(json.dumps(calibration.to_json(), sort_keys=True, default=str).encode())
+    h.update(json.dumps(options.extraction_key(), sort_keys=True, default=str).encode())
+    return h.hexdigest()
+
+
+# --------------------------------------------------------------------------------------------
+# extraction (workers)
+
+
+@dataclass(frozen=True)
+class _FrameJob:
+    index: int  # position in the global frame list
+    laser_image: str
+    laser_off_image: str | None
+
+
+@dataclass(frozen=True)
+class _ChunkJob:
+    chunk: int
+    path: str
+    frames: tuple[_FrameJob, ...]
+    mode: str
+    orientation: str
+    stripe: StripeOptions
+    key: str
+
+
+def _extract_chunk(job: _ChunkJob) -> tuple[int, int, int]:
+    """Worker: extract every frame of a chunk and save the profiles. Returns (chunk, points, empty)."""
+    try:
+        import cv2
+
+        cv2.setNumThreads(1)
+    except Exception:  # pragma: no cover - cv2 is a dependency
+        pass
+    parts: dict[str, list[NDArray]] = {k: [] for k in (*_PROFILE_KEYS, "frame")}
+    empty = 0
+    for fj in job.frames:
+        image = load_gray_image(fj.laser_image, laser=True)
+        background = None
+        if fj.laser_off_image is not None:
+            background = load_gray_image(fj.laser_off_image, laser=True)
+        prof = extract_stripe(
+            image,
+            mode=job.mode,
+            orientation=job.orientation,
+            background=background,
+            options=job.stripe,
+        )
+        if len(prof) == 0:
+            empty += 1
+        for k in _PROFILE_KEYS:
+            parts[k].append(getattr(prof, k))
+        parts["frame"].append(np.full(len(prof), fj.index, np.int32))
+    arrays = {k: np.concatenate(v) for k, v in parts.items()}
+    with atomic_output(job.path, suffix=".npz") as tmp:
+        np.savez(tmp, key=np.array(job.key), **arrays)
+    return job.chunk, int(arrays["u"].size), empty
+
+
+def _pool(workers: int) -> Executor:
+    """Worker processes (fork: no re-import of the caller's main module), else threads.
+
+    The workers only decode PNGs and run NumPy/OpenCV, which is safe after a fork; where fork
+    does not exist the threads still overlap because OpenCV and NumPy release the GIL.
+    """
+    if "fork" in multiprocessing.get_all_start_methods():
+        return ProcessPoolExecutor(
+            max_workers=workers, mp_context=multiprocessing.get_context("fork")
+        )
+    return ThreadPoolExecutor(max_workers=workers)
+
+
+def _load_chunk(path: Path, key: str) -> dict[str, NDArray] | None:
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if str(z["key"]) != key:
+                return None
+            return {k: z[k] for k in (*_PROFILE_KEYS, "frame")}
+    except (OSError, ValueError, KeyError, EOFError):
+        return None
+
+
+def _resolve_orientation(options: ScanOptions, calibration: Calibration) -> str:
+    if options.orientation == "calibration":
+        return orientation_from_calibration(calibration)
+    return options.orientation
+
+
+def scan_profiles(
+    frames: Sequence[Frame],
+    calibration: Calibration,
+    options: ScanOptions,
+    work_dir: Path,
+    key: str,
+    progress: bool = True,
+) -> tuple[dict[str, NDArray], int, int]:
+    """Stripe profiles of ``frames`` (resuming saved chunks), concatenated.
+
+    Returns
+    -------
+    profiles : dict of ndarray
+        ``u, v, intensity, width_px, flags, line`` and ``frame`` (index into ``frames``).
+    chunks_resumed, frames_without_stripe : int
+    """
+    work_dir.mkdir(parents=True, exist_ok=True)
+    orientation = _resolve_orientation(options, calibration)
+    n = len(frames)
+    size = options.chunk_frames
+    jobs: list[_ChunkJob] = []
+    loaded: dict[int, dict[str, NDArray]] = {}
+    for c, start in enumerate(range(0, n, size)):
+        path = work_dir / f"chunk_{c:05d}.npz"
+        if path.is_file():
+            arrays = _load_chunk(path, key)
+            if arrays is not None:
+                loaded[c] = arrays
+                continue
+        fjobs = tuple(
+            _FrameJob(
+                i,
+                str(frames[i].laser_image),
+                str(frames[i].laser_off_image)
+                if options.use_laser_off and frames[i].laser_off_image is not None
+                else None,
+            )
+            for i in range(start, min(n, start + size))
+        )
+        jobs.append(_ChunkJob(c, str(path), fjobs, options.mode, orientation, options.stripe, key))
+    resumed = len(loaded)
+    if resumed:
+        log.info(
+            "resuming: %d of %d chunks already extracted in %s",
+            resumed,
+            resumed + len(jobs),
+            work_dir,
+        )
+
+    empty = 0
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        done = sum(min(size, n - c * size) for c in loaded)
+        bar = tqdm(total=n, initial=done, unit="frame", desc="stripes", leave=False)
+    try:
+        if options.workers > 1 and len(jobs) > 1:
+            with _pool(options.workers) as pool:
+                for c, _, e in pool.map(_extract_chunk, jobs):
+                    empty += e
+                    if bar is not None:
+                        bar.update(min(size, n - c * size))
+        else:
+            for job in jobs:
+                c, _, e = _extract_chunk(job)
+                empty += e
+                if bar is not None:
+                    bar.update(min(size, n - c * size))
+    finally:
+        if bar is not None:
+            bar.close()
+    for job in jobs:
+        arrays = _load_chunk(Path(job.path), key)
+        if arrays is None:  # pragma: no cover - just written
+            raise OSError(f"{job.path}: chunk written but not readable")
+        loaded[job.chunk] = arrays
+    ordered = [loaded[c] for c in sorted(loaded)]
+    profiles = {k: np.concatenate([a[k] for a in ordered]) for k in (*_PROFILE_KEYS, "frame")}
+    if resumed:
+        # Frames of resumed chunks without any point count as empty too.
+        have = np.zeros(n, bool)
+        have[profiles["frame"]] = True
+        empty = int(n - np.count_nonzero(have))
+    return profiles, resumed, empty
+
+
+# --------------------------------------------------------------------------------------------
+# the job
+
+
+def scan_session(
+    session_or_sessions: Any,
+    calibration: Calibration | str | os.PathLike[str],
+    options: ScanOptions | None = None,
+    out_path: str | os.PathLike[str] | None = None,
+    work_dir: str | os.PathLike[str] | None = None,
+    progress: bool = True,
+    keep_work: bool | None = None,
+) -> ScanResult:
+    """Scan one or several sweep sessions into one base-frame cloud (mm), written to ``out_path``.
+
+    Parameters
+    ----------
+    session_or_sessions : Session, path, or a list of them
+        Sweep sessions; frames carrying a ``sweep`` column split a session into sweeps.
+    calibration : Calibration or path
+    options : ScanOptions, optional
+    out_path : path, optional
+        ``.ply`` (binary), ``.pcd`` or ``.e57``; ``None``: return the cloud without writing.
+    work_dir : path, optional
+        Where the per-chunk profiles go (a sub-folder per input hash). Default: a hidden folder
+        beside ``out_path`` (or the system's temporary folder), removed after success.
+    progress : bool
+        tqdm progress bar on standard error.
+    keep_work : bool, optional
+        Keep the saved profiles after success (default: keep only when ``work_dir`` is given).
+
+    Returns
+    -------
+    ScanResult
+
+    Raises
+    ------
+    InputError
+        Bad input, before any extraction (see :func:`check_scan_inputs`).
+    """
+    from scanner.scanning.cloud_io import write_cloud
+    from scanner.scanning.stitch import build_cloud, filter_cloud, refine_sweeps
+    from scanner.scanning.triangulate import Triangulator
+
+    t0 = time.perf_counter()
+    options = options or ScanOptions()
+    cal_path: Path | None = None
+    if not isinstance(calibration, Calibration):
+        cal_path = Path(calibration)
+        calibration = read_calibration(cal_path)
+    sessions = _as_sessions(session_or_sessions)
+    check_scan_inputs(sessions, calibration)
+    if out_path is not None:
+        from scanner.scanning.cloud_io import _check_format
+
+        _check_format(Path(out_path))
+
+    # Global frame list and sweep ids: (session, sweep column) pairs numbered in order.
+    frames: list[Frame] = []
+    sweep_of: list[int] = []
+    sweep_ids: dict[tuple[int, int], int] = {}
+    for si, s in enumerate(sessions):
+        for f in s.frames:
+            sweep_of.append(sweep_ids.setdefault((si, f.sweep), len(sweep_ids)))
+            frames.append(f)
+    key = _work_key(sessions, calibration, options)
+    if keep_work is None:
+        keep_work = work_dir is not None
+    if work_dir is None:
+        base = (
+            Path(out_path).parent
+            if out_path is not None
+            else Path(os.environ.get("TMPDIR", "/tmp"))
+        )
+        work_root = base / ".scanner-work"
+    else:
+        work_root = Path(work_dir)
+    chunk_dir = work_root / key[:16]
+
+    t1 = time.perf_counter()
+    profiles, resumed, empty = scan_profiles(
+        frames, calibration, options, chunk_dir, key, progress=progress
+    )
+    t2 = time.perf_counter()
+
+    poses = np.stack([f.base_from_flange for f in frames])  # type: ignore[misc]
+    tri = Triangulator(calibration)
+    uv = np.column_stack([profiles["u"], profiles["v"]])
+    points = tri.points_base(uv, profiles["frame"], poses)
+    ok = np.all(np.isfinite(points), axis=1)
+    frame_pos = profiles["frame"][ok]
+    sweep_arr = np.asarray(sweep_of, dtype=np.int32)[frame_pos]
+    points = points[ok]
+    t3 = time.perf_counter()
+
+    warnings: list[str] = []
+    corrections = []
+    if options.icp and len(sweep_ids) > 1:
+        points, corrections = refine_sweeps(
+            points,
+            sweep_arr,
+            max_distance_mm=options.icp_max_distance_mm,
+            warn_translation_mm=options.icp_warn_translation_mm,
+            warn_rotation_deg=options.icp_warn_rotation_deg,
+        )
+        for c in corrections:
+            if c.applied and (
+                c.translation_mm > options.icp_warn_translation_mm
+                or c.rotation_deg > options.icp_warn_rotation_deg
+            ):
+                warnings.append(
+                    f"sweep {c.sweep}: ICP correction {c.translation_mm:.3f} mm, "
+                    f"{c.rotation_deg:.3f} deg (calibration or robot poses off?)"
+                )
+            elif not c.applied:
+                warnings.append(f"sweep {c.sweep}: not refined ({c.note})")
+
+    frame_ids = np.array([f.id for f in frames], dtype=np.int32)
+    cloud = build_cloud(
+        points,
+        {
+            "intensity": profiles["intensity"][ok].astype(np.float32),
+            "width_px": profiles["width_px"][ok].astype(np.float32),
+            "flags": profiles["flags"][ok].astype(np.uint8),
+            "frame_id": frame_ids[frame_pos],
+            "sweep_id": sweep_arr,
+        },
+    )
+    cloud = filter_cloud(
+        cloud,
+        voxel_mm=options.voxel_mm,
+        outlier_neighbors=options.outlier_neighbors,
+        outlier_std_ratio=options.outlier_std_ratio,
+        normals_radius_mm=options.normals_radius_mm,
+    )
+    t4 = time.perf_counter()
+    n_points = len(cloud.point.positions)
+    if n_points == 0:
+        warnings.append("no stripe points found in any frame")
+
+    written = None
+    if out_path is not None:
+        meta = {
+            "format": "robot-line-scanner cloud/1",
+            "frame": "base",
+            "units": "mm",
+            "calibration": str(cal_path.resolve()) if cal_path else None,
+            "calibration_sha256": hashlib.sha256(
+                json.dumps(calibration.to_json(), sort_keys=True, default=str).encode()
+            ).hexdigest(),
+            "sessions": [str(s.root.resolve()) for s in sessions],
+            "frames": len(frames),
+            "sweeps": len(sweep_ids),
+            "mode": options.mode,
+            "icp": [
+                {
+                    "sweep": c.sweep,
+                    "translation_mm": round(c.translation_mm, 4),
+                    "rotation_deg": round(c.rotation_deg, 4),
+                    "applied": c.applied,
+                }
+                for c in corrections
+            ],
+        }
+        written = write_cloud(out_path, cloud, meta)
+    t5 = time.perf_counter()
+    if not keep_work:
+        shutil.rmtree(chunk_dir, ignore_errors=True)
+        try:
+            work_root.rmdir()
+        except OSError:
+            pass
+    for w in warnings:
+        log.warning(w)
+    return ScanResult(
+        out_path=written,
+        n_points=n_points,
+        n_frames=len(frames),
+        n_sweeps=len(sweep_ids),
+        seconds=time.perf_counter() - t0,
+        cloud=cloud,
+        corrections=corrections,
+        warnings=warnings,
+        chunks_resumed=resumed,
+        frames_without_stripe=empty,
+        timings={
+            "prepare_s": t1 - t0,
+            "extract_s": t2 - t1,
+            "triangulate_s": t3 - t2,
+            "stitch_s": t4 - t3,
+            "write_s": t5 - t4,
+        },
+    )
