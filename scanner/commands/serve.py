@@ -29,7 +29,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from scanner.plc.config import load_plc_config
     from scanner.plc.registers import format_register_map
-    from scanner.plc.service import load_runner, serve
+    from scanner.plc.service import serve
 
     if args.print_map:
         print(format_register_map())
@@ -37,11 +37,10 @@ def run(args: argparse.Namespace) -> int:
     if args.port is not None and not 0 <= args.port <= 65535:
         raise ValueError(f"--port: expected 0..65535, got {args.port}")
     config = load_plc_config(args.config)
-    runner = load_runner(config.jobs.runner, config)
 
     def listening(host: str, port: int) -> None:
         print(f"scanner serve: listening on {host}:{port}", flush=True)
 
-    asyncio.run(serve(config, runner, host=args.host, port=args.port, on_listening=listening))
+    asyncio.run(serve(config, host=args.host, port=args.port, on_listening=listening))
     print("scanner serve: stopped", file=sys.stderr)
     return 0

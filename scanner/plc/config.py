@@ -141,8 +141,15 @@ class JobsConfig:
     """
 
     runner: str = "scanner.plc.jobs:PipelineJobs"
+    #: "process": each job in a worker process of its own (killable, no GIL contention with
+    #: the server); "thread": on a thread of the service (cooperative cancellation only).
+    worker: Literal["process", "thread"] = "process"
+    #: After a cancellation, how long a job process may take to stop before it is killed (s).
+    kill_after_s: float = 2.0
 
     def __post_init__(self) -> None:
+        if self.kill_after_s < 0:
+            raise ValueError(f"kill_after_s: expected >= 0, got {self.kill_after_s}")
         module, sep, attr = self.runner.partition(":")
         if not sep or not module or not attr:
             raise ValueError(f"runner: expected 'package.module:factory', got {self.runner!r}")

@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import importlib
 import logging
 import signal
 import threading
@@ -60,8 +59,17 @@ from scanner.plc.registers import (
     uint32_to_words,
 )
 from scanner.plc.server import ModbusTcpServer
+from scanner.plc.worker import (
+    WorkerError,
+    load_runner,
+    new_cancel_event,
+    run_in_process,
+    run_in_thread,
+)
 
 __all__ = ["PlcService", "load_runner", "serve"]
+
+# load_runner lives in scanner.plc.worker; re-exported for callers of the service.
 
 log = logging.getLogger(__name__)
 
@@ -80,15 +88,6 @@ class _RunningJob:
     done: asyncio.Event = field(default_factory=asyncio.Event)
 
 
-def load_runner(spec: str, config: PlcConfig) -> JobRunner:
-    """Build the job runner named ``"package.module:factory"``, called with the config."""
-    module_name, sep, attr = spec.partition(":")
-    if not sep or not module_name or not attr:
-        raise ValueError(f"expected a runner as 'package.module:factory', got {spec!r}")
-    factory = getattr(importlib.import_module(module_name), attr)
-    return factory(config)
-
-
 class PlcService:
     """The scanner side of the register map and the handshake.
 
@@ -96,8 +95,9 @@ class PlcService:
     ----------
     config : PlcConfig
         Limits, storage paths, recipes.
-    runner : JobRunner
-        The check, scan and calibration jobs.
+    runner : JobRunner or None
+        The check, scan and calibration jobs, run on a thread; ``None`` with
+        ``[jobs] worker = "process"``, where each job process builds its own from the config.
     history : JobHistory
         Where every job is recorded.
     clock : callable, optional
@@ -107,10 +107,15 @@ class PlcService:
     def __init__(
         self,
         config: PlcConfig,
-        runner: JobRunner,
+        runner: JobRunner | None,
         history: JobHistory,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
+        if (runner is None) == (config.jobs.worker == "thread"):
+            raise ValueError(
+                f"expected a runner object with worker = 'thread' and none with 'process', got "
+                f"{type(runner).__name__} with {config.jobs.worker!r}"
+            )
         self.config = config
         self.runner = runner
         self.history = history
@@ -258,7 +263,14 @@ class PlcService:
         self.regs[Reg.STATE] = int(State.RUNNING)
         self.regs[Reg.STATUS] = int(self._status(Status.BUSY))
         work_dir = Path(self.config.storage.work_dir) / f"job-{job_id:06d}"
-        ctx = JobContext(job_id, int(command), parameter, work_dir, self.config)
+        ctx = JobContext(
+            job_id,
+            int(command),
+            parameter,
+            work_dir,
+            self.config,
+            cancel=new_cancel_event(self.config.jobs.worker),
+        )
         self.job = _RunningJob(ctx, started=self.clock())
         self._hb_changed_at = self.clock()
         task = asyncio.get_running_loop().create_task(self._run(self.job, _JOB_COMMANDS[command]))
@@ -275,8 +287,12 @@ class PlcService:
 
         def work() -> None:
             try:
-                job.ctx.work_dir.mkdir(parents=True, exist_ok=True)
-                outcome = getattr(self.runner, method)(job.ctx)
+                if self.runner is None:
+                    outcome = run_in_process(
+                        self.config, method, job.ctx, self.config.jobs.kill_after_s
+                    )
+                else:
+                    outcome = run_in_thread(self.runner, method, job.ctx)
                 args: tuple[Callable[[Any], None], Any] = (future.set_result, outcome)
             except BaseException as exc:
                 args = (future.set_exception, exc)
@@ -293,6 +309,8 @@ class PlcService:
             pass
         except JobError as exc:
             error, message = exc.code, exc.message
+        except WorkerError as exc:
+            error, message = ErrorCode.INTERNAL, str(exc)
         except Exception as exc:
             log.error("job %d failed", job.ctx.job_id, exc_info=exc)
             error, message = ErrorCode.INTERNAL, f"{type(exc).__name__}: {exc}"
@@ -401,7 +419,7 @@ class PlcService:
 
 async def serve(
     config: PlcConfig,
-    runner: JobRunner,
+    runner: JobRunner | None = None,
     *,
     host: str | None = None,
     port: int | None = None,
@@ -414,14 +432,17 @@ async def serve(
     ----------
     config : PlcConfig
         The whole config; ``host`` and ``port`` override ``config.server``.
-    runner : JobRunner
-        The jobs.
+    runner : JobRunner, optional
+        Jobs to run on a thread (needs ``[jobs] worker = "thread"``); by default the runner
+        the config names, on a thread or in a process per job as the config says.
     stop : asyncio.Event, optional
         Set it to stop the service (tests); signals set it too.
     on_listening : callable, optional
         Called with the address and the port actually bound (port 0 picks one).
     """
     stop = stop or asyncio.Event()
+    if runner is None and config.jobs.worker == "thread":
+        runner = load_runner(config.jobs.runner, config)
     history = JobHistory(config.storage.history_db)
     service = PlcService(config, runner, history)
     srv = config.server

@@ -13,7 +13,13 @@ from pathlib import Path
 
 import pytest
 
-from scanner.plc.config import PlcConfig, ServerConfig, StorageConfig, WatchdogConfig
+from scanner.plc.config import (
+    JobsConfig,
+    PlcConfig,
+    ServerConfig,
+    StorageConfig,
+    WatchdogConfig,
+)
 from scanner.plc.jobs import JobRunner
 from scanner.plc.service import serve
 from tests.scanner.plc.fakes import FakeJobs
@@ -31,6 +37,7 @@ def make_config(tmp: Path, **server: object) -> PlcConfig:
             work_dir=str(tmp / "jobs"),
             calibration=str(tmp / "calibration.json"),
         ),
+        jobs=JobsConfig(runner="tests.scanner.plc.fakes:FakeJobs", worker="thread"),
     )
 
 

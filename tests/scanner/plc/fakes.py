@@ -15,6 +15,7 @@ subprocess tests too, through ``[jobs] runner = "tests.scanner.plc.fakes:FakeJob
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from pathlib import Path
@@ -39,6 +40,8 @@ class FakeJobs:
         with self.lock:
             self.calls.append((name, ctx.job_id, ctx.parameter))
         self.started.set()
+        ctx.work_dir.mkdir(parents=True, exist_ok=True)
+        (ctx.work_dir / "pid").write_text(str(os.getpid()), encoding="utf-8")
         p = ctx.parameter
         if p == 999:
             raise JobError(ErrorCode.BAD_INPUT, "fake: bad input")

@@ -22,7 +22,7 @@ from tests.scanner.plc.test_service import Plc, done
 pytestmark = pytest.mark.timeout(120)
 
 
-def write_config(tmp: Path, **watchdog: float) -> Path:
+def write_config(tmp: Path, worker: str = "process", **watchdog: float) -> Path:
     wd = {"heartbeat_timeout_s": 0.0, "job_timeout_s": 0.0, "shutdown_grace_s": 2.0, **watchdog}
     text = f"""
 [server]
@@ -40,6 +40,7 @@ calibration = "{tmp / "calibration.json"}"
 
 [jobs]
 runner = "tests.scanner.plc.fakes:FakeJobs"
+worker = "{worker}"
 """
     path = tmp / "plc.toml"
     path.write_text(text, encoding="utf-8")
@@ -77,19 +78,46 @@ def served(tmp_path: Path) -> Iterator[Served]:
     s.stop()
 
 
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return Path(f"/proc/{pid}").exists() and "zombie" not in _proc_state(pid)
+
+
+def _proc_state(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/status").read_text().split("State:", 1)[1].split("\n")[0]
+    except (OSError, IndexError):
+        return "zombie"
+
+
 @pytest.mark.slow
-def test_sigkill_mid_job_then_restart_marks_the_job_interrupted(tmp_path: Path):
-    config = write_config(tmp_path)
+@pytest.mark.parametrize("worker", ["process", "thread"])
+def test_sigkill_mid_job_then_restart_marks_the_job_interrupted(tmp_path: Path, worker: str):
+    config = write_config(tmp_path, worker=worker)
     first = Served(config)
     try:
         plc = Plc(first.port)
         assert plc.write(0, [2, 33, 0, 100]) == 0  # a 10 s scan job
         plc.wait(lambda s: s["bits"] & Status.BUSY)
+        pid_file = tmp_path / "jobs" / "job-000001" / "pid"
+        deadline = time.monotonic() + 10
+        while not pid_file.exists() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        job_pid = int(pid_file.read_text())
         plc.close()
         first.proc.send_signal(signal.SIGKILL)
         first.proc.wait(10)
     finally:
         first.stop()
+    if worker == "process":  # the job process does not outlive the service
+        assert job_pid != first.proc.pid
+        deadline = time.monotonic() + 5
+        while _alive(job_pid) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not _alive(job_pid)
     with JobHistory(tmp_path / "history.sqlite") as h:
         assert h.latest(1)[0].state == "running"  # recorded before the kill, left as it was
     second = Served(config)
@@ -107,7 +135,16 @@ def test_sigkill_mid_job_then_restart_marks_the_job_interrupted(tmp_path: Path):
 
 
 @pytest.mark.slow
-def test_sigterm_stops_cleanly_and_records_the_running_job(served: Served, tmp_path: Path):
+@pytest.mark.parametrize("worker", ["process", "thread"])
+def test_sigterm_stops_cleanly_and_records_the_running_job(tmp_path: Path, worker: str):
+    served = Served(write_config(tmp_path, worker=worker))
+    try:
+        _sigterm_mid_job(served, tmp_path)
+    finally:
+        served.stop()
+
+
+def _sigterm_mid_job(served: Served, tmp_path: Path) -> None:
     plc = Plc(served.port)
     plc.run(1, 1)
     assert plc.write(0, [1, 2, 0, 100]) == 0
