@@ -1,0 +1,191 @@
+"""Stripe extraction on rendered frames with known centres (scanner.scanning.synthetic)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from scanner.scanning.stripe import (
+    StripeFlag,
+    StripeProfile,
+    extract_stripe,
+    orientation_from_calibration,
+    orientation_from_image,
+)
+from scanner.scanning.synthetic import StripeSegment, TableStepScene, render_stripes
+
+SHAPE = (240, 320)
+
+
+def _errors(profile: StripeProfile, lines: np.ndarray, pos: np.ndarray, across: bool = False):
+    """Error of each extracted point against the truth of its line (NaN where the truth has none)."""
+    truth = np.full(max(SHAPE) + 1, np.nan)
+    truth[lines] = pos
+    got = profile.v if across else profile.u
+    return got - truth[profile.line]
+
+
+def _single(seed: int = 0, noise: float = 1.0, sigma: float = 1.5, orientation: str = "rows"):
+    seg = StripeSegment((0, SHAPE[0]), (140.3, 0.21, -2e-4), amplitude=170.0, sigma_px=sigma)
+    return render_stripes(SHAPE, [seg], noise=noise, seed=seed, orientation=orientation)
+
+
+@pytest.mark.parametrize(("mode", "rms_max"), [("fast", 0.03), ("precise", 0.015)])
+def test_single_stripe_meets_accuracy_targets(mode, rms_max):
+    img, truth = _single(seed=1)
+    p = extract_stripe(img, mode=mode, orientation="rows")
+    err = _errors(p, *truth[0])
+    assert len(p) == SHAPE[0]
+    assert np.sqrt(np.mean(err**2)) < rms_max
+    assert abs(np.mean(err)) < 0.005
+    assert np.all(p.flags == 0)
+    np.testing.assert_array_equal(p.v, p.line)
+
+
+@pytest.mark.parametrize("mode", ["fast", "precise"])
+def test_column_scan_lines_match_row_scan_lines(mode):
+    img, truth = _single(seed=2, orientation="cols")
+    assert orientation_from_image(img) == "cols"
+    p = extract_stripe(img, mode=mode, orientation="auto")
+    assert p.orientation == "cols"
+    err = _errors(p, *truth[0], across=True)
+    assert np.sqrt(np.mean(err**2)) < (0.03 if mode == "fast" else 0.015)
+    np.testing.assert_array_equal(p.u, p.line)
+
+
+@pytest.mark.parametrize("mode", ["fast", "precise"])
+def test_no_bias_at_the_image_border(mode):
+    # A slanted stripe that runs within 2 px of the left border at the top rows.
+    rng = np.random.default_rng(3)
+    errs_edge, errs_top = [], []
+    for seed in range(6):
+        c0 = 1.2 + rng.uniform(0, 1)
+        seg = StripeSegment((0, SHAPE[0]), (c0, 0.5), amplitude=170.0, sigma_px=1.3)
+        img, truth = render_stripes(SHAPE, [seg], noise=1.0, seed=seed)
+        p = extract_stripe(img, mode=mode, orientation="rows")
+        err = _errors(p, *truth[0])
+        edge = p.u < 4.5
+        errs_edge.append(err[edge])
+        errs_top.append(err[p.line < 3])
+        assert np.all(p.flags[edge & (p.u < 2.5)] & StripeFlag.BORDER)
+    e = np.concatenate(errs_edge)
+    t = np.concatenate(errs_top)
+    assert e.size > 20
+    # Bias at the border: well inside the RMS targets (standard error ~0.01 px here).
+    assert abs(np.mean(e)) < 0.02
+    assert np.sqrt(np.mean(e**2)) < 0.06
+    assert abs(np.mean(t)) < 0.03
+
+
+def test_several_segments_on_one_line_are_all_kept():
+    # An object's segment and the table's beside it share lines 90..119.
+    table = StripeSegment((0, 120), (100.0, 0.05), amplitude=170.0)
+    obj = StripeSegment((90, 240), (180.0, -0.05), amplitude=110.0)
+    img, truth = render_stripes(SHAPE, [table, obj], noise=1.0, seed=4)
+    for mode in ("fast", "precise"):
+        p = extract_stripe(img, mode=mode, orientation="rows")
+        shared = (p.line >= 90) & (p.line < 120)
+        assert np.all(np.bincount(p.line[shared])[90:120] == 2)
+        for lines, pos in truth:
+            err = _errors(p, lines, pos)
+            near = np.abs(err) < 2
+            assert np.count_nonzero(near) == lines.size  # every line of the segment found
+            assert np.sqrt(np.mean(err[near] ** 2)) < 0.05
+        assert len(p) == 240 + 30  # and nothing else
+        weaker = shared & (p.u > 140)
+        assert np.all(p.flags[weaker] & StripeFlag.SECONDARY)
+
+
+def test_dark_ink_gap_gives_no_false_points():
+    seg = StripeSegment((0, SHAPE[0]), (150.0, 0.1), amplitude=170.0)
+    img, truth = render_stripes(
+        SHAPE, [seg], noise=1.5, seed=5, dark=[(80, 120, 0.0), (150, 170, 0.08)]
+    )
+    p = extract_stripe(img, mode="fast", orientation="rows")
+    err = _errors(p, *truth[0])
+    assert not np.any((p.line >= 80) & (p.line < 120))  # stripe absorbed: nothing
+    dim = (p.line >= 150) & (p.line < 170)
+    # Barely visible: each point either absent or on the stripe, and flagged.
+    assert np.all(np.abs(err[dim]) < 1.0)  # noisy (SNR ~9) but on the stripe
+    assert np.all(p.flags[dim] & StripeFlag.LOW_CONTRAST)
+    assert np.all(np.abs(err[~dim]) < 0.15)
+
+
+@pytest.mark.parametrize("mode", ["fast", "precise"])
+def test_saturated_flat_tops_are_centred_and_flagged(mode):
+    seg = StripeSegment((0, SHAPE[0]), (120.4, 0.3), amplitude=900.0, sigma_px=1.6)
+    img, truth = render_stripes(SHAPE, [seg], noise=1.0, seed=6)
+    assert (img == 255).sum(axis=1).min() >= 3
+    p = extract_stripe(img, mode=mode, orientation="rows")
+    err = _errors(p, *truth[0])
+    assert len(p) == SHAPE[0]
+    assert np.all(p.flags & StripeFlag.SATURATED)
+    assert np.sqrt(np.mean(err**2)) < 0.1
+    assert abs(np.mean(err)) < 0.03
+
+
+def test_weaker_reflection_is_dropped_and_flagged():
+    main = StripeSegment((0, SHAPE[0]), (120.0, 0.2), amplitude=170.0)
+    ghost = StripeSegment((60, 140), (150.0, 0.2), amplitude=60.0, sigma_px=2.5)
+    img, truth = render_stripes(SHAPE, [main, ghost], noise=1.0, seed=7)
+    p = extract_stripe(img, mode="fast", orientation="rows")
+    err = _errors(p, *truth[0])
+    assert len(p) == SHAPE[0]
+    assert np.sqrt(np.mean(err**2)) < 0.05
+    amb = (p.flags & StripeFlag.AMBIGUOUS) != 0
+    np.testing.assert_array_equal(np.unique(p.line[amb]), np.arange(60, 140))
+    kept = extract_stripe(img, mode="fast", orientation="rows", keep_reflections=True)
+    assert len(kept) == SHAPE[0] + 80
+
+
+def test_laser_off_frame_removes_a_lit_target():
+    seg = StripeSegment((0, SHAPE[0]), (160.0, 0.0), amplitude=120.0)
+    lit = (40, 200, 60, 260, 110.0)
+    # The stripe crosses dark ink (absent) on lines 100..130 inside the lit patch.
+    img, truth = render_stripes(
+        SHAPE, [seg], noise=1.0, seed=8, lit_region=lit, dark=[(100, 130, 0.0)]
+    )
+    off, _ = render_stripes(SHAPE, [], noise=1.0, seed=9, lit_region=lit)
+    p = extract_stripe(img, mode="precise", orientation="rows", background=off)
+    err = _errors(p, *truth[0])
+    assert not np.any((p.line >= 100) & (p.line < 130))
+    assert np.count_nonzero(p.line < 100) == 100
+    assert np.sqrt(np.mean(err**2)) < 0.03
+
+
+def test_noise_only_frame_gives_nothing():
+    img, _ = render_stripes(SHAPE, [], noise=3.0, seed=10)
+    assert len(extract_stripe(img, mode="fast")) == 0
+    assert len(extract_stripe(img, mode="precise")) == 0
+
+
+def test_sixteen_bit_frames():
+    seg = StripeSegment((0, SHAPE[0]), (140.3, 0.21), amplitude=170.0 * 64)
+    img, truth = render_stripes(
+        SHAPE, [seg], noise=64.0, background=500.0, seed=11, dtype=np.uint16, full_scale=65535.0
+    )
+    p = extract_stripe(img, mode="precise", orientation="rows")
+    err = _errors(p, *truth[0])
+    assert len(p) == SHAPE[0]
+    assert np.sqrt(np.mean(err**2)) < 0.015
+
+
+def test_orientation_from_calibration_follows_the_light_plane():
+    cal = TableStepScene().calibration()
+    assert orientation_from_calibration(cal) == "rows"
+    # Turn the plane about the optical axis by 90 degrees: its line now runs left to right.
+    n = cal.light_plane.normal
+    cal.light_plane = type(cal.light_plane)(np.array([n[1], n[0], n[2]]), cal.light_plane.d)
+    assert orientation_from_calibration(cal) == "cols"
+
+
+def test_bad_input_is_refused_saying_expected_and_got():
+    img, _ = _single()
+    with pytest.raises(ValueError, match="mode: expected"):
+        extract_stripe(img, mode="slow")
+    with pytest.raises(ValueError, match="orientation: expected"):
+        extract_stripe(img, orientation="diagonal")
+    with pytest.raises(ValueError, match="expected a 2-D grey image"):
+        extract_stripe(np.dstack([img, img, img]))
+    with pytest.raises(ValueError, match="background: expected the image's shape"):
+        extract_stripe(img, background=img[:-1])
