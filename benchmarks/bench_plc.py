@@ -154,7 +154,44 @@ def main() -> int:
     parser.add_argument("--clients", type=int, default=50)
     parser.add_argument("--seconds", type=float, default=5.0)
     args = parser.parse_args()
-    job_tenths = int(args.seconds * 10 * 0.8)  # the job ends before the pollers stop
+    job_tenths = int(args.seconds * 10 * 0.6)  # the job ends before the pollers stop
+    rows = []
+    for worker, scenarios in (
+        ("process", [("idle", None), ("sleep job", job_tenths), ("cpu job", 1000 + job_tenths)]),
+        ("thread", [("cpu job", 1000 + job_tenths)]),
+    ):
+        for name, row in run_service(args, worker, scenarios):
+            rows.append((worker, name, row))
+    print(
+        f"PLC service load: {args.clients} clients reading 100-114 in a loop, "
+        f"{args.seconds:.0f} s per scenario, loopback, {os.cpu_count()} CPUs, "
+        f"load average {os.getloadavg()[0]:.1f}"
+    )
+    print()
+    print(
+        f"| {'worker':<7} | {'scenario':<10} | {'requests':>8} | {'errors':>6} | {'p50 ms':>7} "
+        f"| {'p99 ms':>7} | {'max ms':>7} | {'req/s':>7} | job"
+    )
+    print(
+        f"|{'-' * 9}|{'-' * 12}|{'-' * 10}|{'-' * 8}|{'-' * 9}|{'-' * 9}|{'-' * 9}|{'-' * 9}"
+        f"|{'-' * 20}"
+    )
+    failed = False
+    for worker, name, r in rows:
+        failed |= bool(r["errors"])
+        print(
+            f"| {worker:<7} | {name:<10} | {r['requests']:>8} | {r['errors']:>6} | "
+            f"{r['p50']:>7.2f} | {r['p99']:>7.2f} | {r['max']:>7.2f} | {r['rate']:>7.0f} | "
+            f"{r['job']}"
+        )
+    return 1 if failed else 0
+
+
+def run_service(
+    args: argparse.Namespace, worker: str, scenarios: list[tuple[str, int | None]]
+) -> list[tuple[str, dict[str, object]]]:
+    """Start `scanner serve` with this worker and run the scenarios against it."""
+    rows: list[tuple[str, dict[str, object]]] = []
     with tempfile.TemporaryDirectory() as tmp:
         config = Path(tmp) / "plc.toml"
         config.write_text(
@@ -168,6 +205,7 @@ work_dir = "{tmp}/jobs"
 calibration = "{tmp}/calibration.json"
 [jobs]
 runner = "benchmarks.bench_plc:BenchJobs"
+worker = "{worker}"
 """,
             encoding="utf-8",
         )
@@ -183,38 +221,16 @@ runner = "benchmarks.bench_plc:BenchJobs"
             line = proc.stdout.readline() if proc.stdout else ""
             m = re.search(r":(\d+)$", line.strip())
             if not m:
-                print(f"service did not start: {line!r}", file=sys.stderr)
-                return 1
+                raise RuntimeError(f"service did not start: {line!r}")
             port = int(m.group(1))
-            rows = []
-            for seq, (name, parameter) in enumerate(
-                [("idle", None), ("sleep job", job_tenths), ("cpu job", 1000 + job_tenths)],
-                start=1,
-            ):
+            for seq, (name, parameter) in enumerate(scenarios, start=1):
                 rows.append(
                     (name, asyncio.run(scenario(port, args.clients, args.seconds, seq, parameter)))
                 )
         finally:
             proc.terminate()
             proc.wait(10)
-    print(
-        f"PLC service load: {args.clients} clients reading 100-114 in a loop, "
-        f"{args.seconds:.0f} s per scenario, loopback, {os.cpu_count()} CPUs"
-    )
-    print()
-    print(
-        f"| {'scenario':<10} | {'requests':>8} | {'errors':>6} | {'p50 ms':>7} | {'p99 ms':>7} "
-        f"| {'max ms':>7} | {'req/s':>7} | job"
-    )
-    print(f"|{'-' * 12}|{'-' * 10}|{'-' * 8}|{'-' * 9}|{'-' * 9}|{'-' * 9}|{'-' * 9}|{'-' * 20}")
-    failed = False
-    for name, r in rows:
-        failed |= bool(r["errors"])
-        print(
-            f"| {name:<10} | {r['requests']:>8} | {r['errors']:>6} | {r['p50']:>7.2f} | "
-            f"{r['p99']:>7.2f} | {r['max']:>7.2f} | {r['rate']:>7.0f} | {r['job']}"
-        )
-    return 1 if failed else 0
+    return rows
 
 
 if __name__ == "__main__":
