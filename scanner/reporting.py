@@ -48,6 +48,7 @@ __all__ = [
     "section",
     "status_of",
     "summary_line",
+    "table",
     "tolerance_table",
     "write_page",
 ]
@@ -251,6 +252,29 @@ def tolerance_table(rows: Sequence[ToleranceRow], decimals: int = 3) -> str:
             f'<td class="num">{_esc(format_tolerance(r.lower, r.upper, decimals))}</td>'
             f'<td class="status">{_esc(st)}</td><td class="note">{_esc(r.note)}</td></tr>\n'
         )
+    out.append("</tbody></table>\n")
+    return "".join(out)
+
+
+def table(headers: Sequence[str], rows: Iterable[Sequence[Any]], decimals: int = 4) -> str:
+    """A plain table: a header row, then one row per sequence of cells.
+
+    Floats print with ``decimals`` decimals in right-aligned monospace cells, None as ``-``;
+    everything else with ``str``. Values are escaped.
+    """
+    out = ["<table><thead><tr>"]
+    out += [f"<th>{_esc(h)}</th>" for h in headers]
+    out.append("</tr></thead>\n<tbody>\n")
+    for row in rows:
+        out.append("<tr>")
+        for cell in row:
+            if isinstance(cell, float) or cell is None:
+                out.append(f'<td class="num">{format_value(cell, decimals)}</td>')
+            elif isinstance(cell, int) and not isinstance(cell, bool):
+                out.append(f'<td class="num">{cell}</td>')
+            else:
+                out.append(f"<td>{_esc(cell)}</td>")
+        out.append("</tr>\n")
     out.append("</tbody></table>\n")
     return "".join(out)
 

@@ -84,3 +84,11 @@ def test_figure_accepts_matplotlib_figure_and_refuses_non_png():
     assert "data:image/png;base64," in rep.figure(fig, "line")
     with pytest.raises(ValueError, match="expected PNG"):
         rep.png_data_uri(b"GIF89a....")
+
+
+def test_plain_table_formats_numbers_and_escapes_text():
+    html_text = rep.table(["name", "value", "count"], [["a<b", 1.23456, 7], ["c", None, 0]], 2)
+    assert "a&lt;b" in html_text
+    assert '<td class="num">1.23</td>' in html_text
+    assert '<td class="num">7</td>' in html_text
+    assert '<td class="num">-</td>' in html_text
