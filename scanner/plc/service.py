@@ -61,6 +61,7 @@ from scanner.plc.registers import (
 from scanner.plc.server import ModbusTcpServer
 from scanner.plc.worker import (
     WorkerError,
+    kill_job_processes,
     load_runner,
     new_cancel_event,
     run_in_process,
@@ -205,12 +206,15 @@ class PlcService:
         results_um: tuple[float | None, ...],
         passed: bool,
         error: ErrorCode,
+        result_valid: bool = True,
     ) -> None:
         """Results first, then status; the job id is the job's own."""
         self._set_results(results_um)
         self._set_words(Reg.JOB_ID, uint32_to_words(job_id))
         if error == ErrorCode.NONE:
-            bits = Status.DONE | Status.RESULT_VALID | (Status.PASS if passed else Status(0))
+            bits = Status.DONE
+            if result_valid:
+                bits |= Status.RESULT_VALID | (Status.PASS if passed else Status(0))
             state = State.DONE
         else:
             bits, state = Status.ERROR, State.ERROR
@@ -237,7 +241,13 @@ class PlcService:
         if rec.state == "interrupted" and error == ErrorCode.NONE:
             error = ErrorCode.INTERRUPTED
         results = (rec.result1_um, rec.result2_um, rec.result3_um)
-        self._publish_end(rec.id, results, bool(rec.passed), error)
+        self._publish_end(
+            rec.id,
+            results,
+            bool(rec.passed),
+            error,
+            result_valid=rec.command != Command.CLEAR_ERROR,
+        )
         log.info("restored job %d (%s): sequence %d", rec.id, rec.state, rec.sequence)
 
     # ---------------------------------------------------------------------------------------
@@ -253,9 +263,8 @@ class PlcService:
         self.regs[Reg.ACK_SEQUENCE] = sequence
         if command == Command.CLEAR_ERROR:
             self.history.finish(job_id, "done")
-            self._publish_end(job_id, (None, None, None), passed=False, error=ErrorCode.NONE)
             # Clear error has no figures: DONE without RESULT_VALID.
-            self.regs[Reg.STATUS] &= ~int(Status.RESULT_VALID)
+            self._publish_end(job_id, (None, None, None), False, ErrorCode.NONE, result_valid=False)
             return
         self._set_results((None, None, None))
         self._set_words(Reg.JOB_ID, uint32_to_words(job_id))
@@ -316,6 +325,8 @@ class PlcService:
             error, message = ErrorCode.INTERNAL, f"{type(exc).__name__}: {exc}"
         if job.cancel_reason is not None:
             error, message = job.cancel_reason, job.cancel_reason.text
+        elif outcome is None and error == ErrorCode.NONE:
+            error, message = ErrorCode.INTERNAL, "job cancelled itself"
         self._finish(job, outcome, error, message)
 
     def _finish(
@@ -374,6 +385,11 @@ class PlcService:
         while True:
             await asyncio.sleep(1.0)
             self.regs[Reg.HEARTBEAT] = (self.regs[Reg.HEARTBEAT] + 1) & 0xFFFF
+            calibrated = Path(self.config.storage.calibration).is_file()
+            if calibrated:
+                self.regs[Reg.STATUS] |= int(Status.CALIBRATED)
+            else:
+                self.regs[Reg.STATUS] &= ~int(Status.CALIBRATED)
 
     async def _watchdog(self, period_s: float) -> None:
         wd = self.config.watchdog
@@ -409,6 +425,7 @@ class PlcService:
             if not job.done.is_set():
                 log.warning("job %d did not stop within %.1f s", job.ctx.job_id, grace)
                 self._finish(job, None, ErrorCode.INTERRUPTED, ErrorCode.INTERRUPTED.text)
+        kill_job_processes()
         for task in [*self._tasks, *self._job_tasks]:
             task.cancel()
         for task in [*self._tasks, *self._job_tasks]:

@@ -33,11 +33,33 @@ from scanner.plc.config import PlcConfig
 from scanner.plc.jobs import JobCancelled, JobContext, JobError, JobOutcome, JobRunner
 from scanner.plc.registers import ErrorCode
 
-__all__ = ["WorkerError", "load_runner", "run_in_process", "run_in_thread"]
+__all__ = [
+    "WorkerError",
+    "kill_job_processes",
+    "load_runner",
+    "new_cancel_event",
+    "run_in_process",
+    "run_in_thread",
+]
 
 log = logging.getLogger(__name__)
 
 _MP = multiprocessing.get_context("spawn")
+#: Job processes alive now (so that a stopping service can kill what did not stop).
+_LIVE: set[multiprocessing.process.BaseProcess] = set()
+_LIVE_LOCK = threading.Lock()
+
+
+def kill_job_processes() -> int:
+    """Kill every job process still running; return how many there were."""
+    with _LIVE_LOCK:
+        procs = [p for p in _LIVE if p.is_alive()]
+    for proc in procs:
+        log.warning("killing job process %s (pid %s)", proc.name, proc.pid)
+        proc.kill()
+    for proc in procs:
+        proc.join(5.0)
+    return len(procs)
 
 
 class WorkerError(Exception):
@@ -126,6 +148,8 @@ def run_in_process(
         daemon=True,
     )
     proc.start()
+    with _LIVE_LOCK:
+        _LIVE.add(proc)
     sender.close()
     reply: tuple[Any, ...] | None = None
     cancelled_at: float | None = None
@@ -151,6 +175,8 @@ def run_in_process(
         if proc.is_alive():
             proc.kill()
             proc.join(5.0)
+        with _LIVE_LOCK:
+            _LIVE.discard(proc)
     if reply is None:
         if ctx.cancel.is_set():
             raise JobCancelled(f"job {ctx.job_id} cancelled (worker process stopped)")

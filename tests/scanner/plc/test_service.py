@@ -320,3 +320,17 @@ def test_stop_during_an_uncooperative_job_records_it_interrupted(tmp_path: Path)
         assert (st["error"], st["ack"]) == (ErrorCode.INTERRUPTED, 5)
         assert st["bits"] & Status.ERROR
         plc.close()
+
+
+def test_restart_after_clear_error_shows_no_result(tmp_path: Path):
+    config = make_config(tmp_path)
+    with running_service(config, FakeJobs(config)) as svc:
+        plc = Plc(svc.port)
+        plc.run(1, 1, parameter=999)
+        plc.run(4, 2)
+        plc.close()
+    with running_service(config, FakeJobs(config)) as svc:
+        plc = Plc(svc.port)
+        st = plc.status()
+        assert st["bits"] == Status.READY | Status.DONE and st["ack"] == 2
+        plc.close()

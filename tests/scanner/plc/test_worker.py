@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from scanner.plc.config import JobsConfig, PlcConfig
+from scanner.plc.history import JobHistory
 from scanner.plc.jobs import JobCancelled, JobContext, JobError
 from scanner.plc.registers import ErrorCode, Status
 from scanner.plc.worker import WorkerError, load_runner, new_cancel_event, run_in_process
@@ -86,3 +87,25 @@ def test_watchdog_kills_a_stuck_job_process(tmp_path: Path):
 def test_runner_names_are_checked(tmp_path: Path):
     with pytest.raises(ValueError, match=r"package\.module:factory"):
         load_runner("nocolon", make_config(tmp_path))
+
+
+def test_stop_kills_a_job_process_that_outlives_the_grace(tmp_path: Path):
+    config = _process_config(tmp_path, shutdown_grace_s=0.2)
+    config = replace(config, jobs=replace(config.jobs, kill_after_s=30.0))
+    with running_service(config, None) as svc:  # type: ignore[arg-type]
+        plc = Plc(svc.port)
+        assert plc.write(0, [1, 1, 0, 996]) == 0  # ignores cancellation for 30 s
+        pid_file = tmp_path / "jobs" / "job-000001" / "pid"
+        deadline = time.monotonic() + 15
+        while not pid_file.exists() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        pid = int(pid_file.read_text())
+        plc.close()
+        t0 = time.monotonic()
+        svc.shutdown()
+        assert time.monotonic() - t0 < 8.0
+    assert (
+        not Path(f"/proc/{pid}").exists() or "Z" in Path(f"/proc/{pid}/stat").read_text().split()[2]
+    )
+    with JobHistory(config.storage.history_db) as h:
+        assert h.latest(1)[0].state == "interrupted"
