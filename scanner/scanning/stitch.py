@@ -102,6 +102,7 @@ def refine_sweeps(
     sweep_id: NDArray,
     max_distance_mm: float = 2.0,
     voxel_mm: float = 0.5,
+    normals_radius_mm: float = 3.0,
     min_fitness: float = 0.3,
     warn_translation_mm: float = 0.2,
     warn_rotation_deg: float = 0.1,
@@ -118,6 +119,9 @@ def refine_sweeps(
         ICP correspondence distance.
     voxel_mm : float
         Downsampling of the ICP's working copies (the output keeps every point).
+    normals_radius_mm : float
+        Normal estimation radius of the reference (several profile spacings: a single profile
+        is a line and has no normal).
     min_fitness : float
         Fraction of a sweep's points that must find a partner; below it the sweep is left as the
         poses put it (too little overlap to judge) and the correction is reported as not applied.
@@ -143,8 +147,8 @@ def refine_sweeps(
     ref_mask = sid == sweeps[0]
     for s in sweeps[1:]:
         mask = sid == s
-        target = _legacy(pts[ref_mask], voxel_mm, 4 * max(voxel_mm, 0.25))
-        source = _legacy(pts[mask], voxel_mm, 4 * max(voxel_mm, 0.25))
+        target = _legacy(pts[ref_mask], voxel_mm, normals_radius_mm)
+        source = _legacy(pts[mask], voxel_mm, normals_radius_mm)
         if len(target.points) < 10 or len(source.points) < 10:
             corrections.append(
                 SweepCorrection(int(s), np.eye(4), 0.0, 0.0, 0.0, 0.0, False, "too few points")

@@ -345,6 +345,16 @@ def _measure(
     pos = cols.astype(np.float64) + mu
     flags = np.zeros(len(cols), np.uint8)
 
+    # A second maximum inside the window (a reflection or another segment a few pixels away)
+    # would pull the centre of gravity between the two: measure those on the peak alone.
+    inner = w[:, 1:-1]
+    level = 0.3 * np.maximum(contrast, 0.0)[:, None]
+    local_max = (inner > w[:, :-2]) & (inner >= w[:, 2:]) & (inner > level)
+    double = np.count_nonzero(local_max, axis=1) > 1
+    if np.any(double):
+        flags[double] |= np.uint8(StripeFlag.AMBIGUOUS)
+        border = border | double
+
     if np.any(border):
         # Three-point Gaussian (log-parabola) on background-subtracted values: unbiased for a
         # Gaussian profile whatever the window, needs only the two neighbours.
@@ -358,7 +368,7 @@ def _measure(
         den = la0 - 2 * la1 + la2
         delta = np.where(good & (den < 0), 0.5 * (la0 - la2) / np.where(den < 0, den, -1.0), 0.0)
         pos[b] = np.where(good & (np.abs(delta) <= 1.0), cols[b] + delta, pos[b])
-        flags[b] |= np.uint8(StripeFlag.BORDER)
+        flags[b[~double[b]]] |= np.uint8(StripeFlag.BORDER)
 
     saturated = peak >= sat
     if np.any(saturated):

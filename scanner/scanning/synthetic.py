@@ -190,6 +190,12 @@ class TableStepScene:
             p_base = (r * s[:, None]) @ bfc[:3, :3].T + bfc[:3, 3]
             on_block = (p_base[:, 0] >= self.x0_mm) & (p_base[:, 0] <= self.x1_mm)
             keep = (on_block if inside else ~on_block) & (u > 2) & (u < self.width - 3)
+            if not inside:
+                # Table points in the block's laser shadow or hidden from the camera by it.
+                f = (self.height_mm - self.step_mm) / self.height_mm
+                for origin_x in (x_mm + self.baseline_mm, x_mm):
+                    xs = origin_x + (p_base[:, 0] - origin_x) * f
+                    keep &= ~((xs >= self.x0_mm) & (xs <= self.x1_mm))
             out.append((rows[keep].astype(np.int64), u[keep]))
         return out
 

@@ -1,0 +1,211 @@
+"""scan_session end to end on a rendered table-and-block sweep (scanner.scanning.synthetic)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from scanner.calibration_file import write_calibration
+from scanner.fileio import InputError
+from scanner.scanning.cloud_io import read_cloud, read_ply_metadata
+from scanner.scanning.pipeline import ScanOptions, scan_session
+from scanner.scanning.synthetic import TableStepScene, write_table_step_sweep
+from scanner.session import read_session, write_session
+
+
+@pytest.fixture(scope="module")
+def sweep(tmp_path_factory):
+    root = tmp_path_factory.mktemp("sweep")
+    session, cal, scene = write_table_step_sweep(root / "session", seed=0)
+    cal_path = root / "calibration.json"
+    write_calibration(cal_path, cal)
+    return session, cal_path, scene
+
+
+@pytest.fixture(scope="module")
+def dense_sweep(tmp_path_factory):
+    """Frames 1 mm apart: dense enough for normals and ICP."""
+    root = tmp_path_factory.mktemp("dense")
+    session, cal, scene = write_table_step_sweep(
+        root / "session", x_mm=np.linspace(-30.0, 30.0, 61), seed=1
+    )
+    cal_path = root / "calibration.json"
+    write_calibration(cal_path, cal)
+    return session, cal_path, scene
+
+
+def _surfaces(points: np.ndarray, scene: TableStepScene):
+    """z of the points on the table and on the block, checking each lies where its surface is."""
+    x, z = points[:, 0], points[:, 2]
+    table = np.abs(z) < 2.0
+    top = np.abs(z - scene.step_mm) < 2.0
+    assert np.all(table | top)  # no stray points, none blended between the surfaces
+    assert not np.any(table & (x > scene.x0_mm + 0.5) & (x < scene.x1_mm - 0.5))
+    assert not np.any(top & ((x < scene.x0_mm - 0.5) | (x > scene.x1_mm + 0.5)))
+    return z[table], z[top]
+
+
+@pytest.mark.parametrize(("mode", "rms_max_mm"), [("fast", 0.12), ("precise", 0.05)])
+def test_scan_recovers_table_and_block_in_the_base_frame(sweep, tmp_path, mode, rms_max_mm):
+    session, cal_path, scene = sweep
+    out = tmp_path / "cloud.ply"
+    result = scan_session(session, cal_path, ScanOptions(mode=mode), out, progress=False)
+    pts = result.cloud.point.positions.numpy()
+    table_z, top_z = _surfaces(pts, scene)
+    # About 2.8 mm of depth per pixel of stripe here: 0.03 px (fast) ~ 0.08 mm.
+    assert table_z.size > 1000 and top_z.size > 300
+    assert np.sqrt(np.mean(table_z**2)) < rms_max_mm
+    assert np.sqrt(np.mean((top_z - scene.step_mm) ** 2)) < rms_max_mm
+    assert result.n_frames == 13 and result.n_points == len(pts)
+    back = read_cloud(out)
+    assert len(back.point.positions) == len(pts)
+    for key in ("intensity", "width_px", "flags", "frame_id", "sweep_id"):
+        assert key in back.point
+    meta = read_ply_metadata(out)
+    assert meta["units"] == "mm" and meta["frame"] == "base"
+    assert meta["sessions"] == [str(session.resolve())]
+
+
+def test_interrupted_run_resumes_from_saved_chunks(sweep, tmp_path):
+    session, cal_path, _ = sweep
+    work = tmp_path / "work"
+    opts = ScanOptions(chunk_frames=4, workers=1)
+    first = scan_session(session, cal_path, opts, tmp_path / "a.ply", work_dir=work, progress=False)
+    chunks = sorted(work.rglob("chunk_*.npz"))
+    assert len(chunks) == 4 and first.chunks_resumed == 0
+    chunks[-1].unlink()  # as if stopped before the last chunk
+    second = scan_session(
+        session, cal_path, opts, tmp_path / "b.ply", work_dir=work, progress=False
+    )
+    assert second.chunks_resumed == 3
+    np.testing.assert_array_equal(
+        first.cloud.point.positions.numpy(), second.cloud.point.positions.numpy()
+    )
+    # Other extraction options: another work folder, nothing reused.
+    third = scan_session(
+        session,
+        cal_path,
+        ScanOptions(chunk_frames=4, workers=1, mode="precise"),
+        tmp_path / "c.ply",
+        work_dir=work,
+        progress=False,
+    )
+    assert third.chunks_resumed == 0
+
+
+def test_two_workers_give_the_same_cloud_as_one(sweep, tmp_path):
+    session, cal_path, _ = sweep
+    one = scan_session(
+        session, cal_path, ScanOptions(workers=1, chunk_frames=3), None, progress=False
+    )
+    two = scan_session(
+        session, cal_path, ScanOptions(workers=2, chunk_frames=3), None, progress=False
+    )
+    np.testing.assert_array_equal(
+        one.cloud.point.positions.numpy(), two.cloud.point.positions.numpy()
+    )
+
+
+def _shifted_copy(session_root, dest, dz_mm: float):
+    """The same sweep with every robot pose raised by ``dz_mm`` (a pose error to be found)."""
+    s = read_session(session_root)
+    frames = []
+    from dataclasses import replace
+
+    for f in s.frames:
+        m = f.base_from_flange.copy()
+        m[2, 3] += dz_mm
+        frames.append(replace(f, base_from_flange=m))
+    dest.mkdir(parents=True)
+    (dest / "images").symlink_to(session_root / "images")
+    frames = [replace(f, laser_image=dest / "images" / f.laser_image.name) for f in frames]
+    write_session(dest, "sweep", s.width, s.height, frames, rotation=s.rotation)
+    return dest
+
+
+def test_several_sweeps_merge_and_icp_reports_the_correction(dense_sweep, tmp_path):
+    session, cal_path, _ = dense_sweep
+    other = _shifted_copy(session, tmp_path / "shifted", dz_mm=0.6)
+    plain = scan_session([session, other], cal_path, ScanOptions(), None, progress=False)
+    sid = plain.cloud.point.sweep_id.numpy().ravel()
+    assert plain.n_sweeps == 2 and set(np.unique(sid)) == {0, 1}
+    z = plain.cloud.point.positions.numpy()[:, 2]
+    assert np.median(z[(sid == 1) & (np.abs(z) < 5)]) == pytest.approx(0.6, abs=0.05)
+
+    refined = scan_session([session, other], cal_path, ScanOptions(icp=True), None, progress=False)
+    (c,) = refined.corrections
+    assert c.applied and c.sweep == 1
+    assert c.transform[2, 3] == pytest.approx(-0.6, abs=0.05)
+    assert c.translation_mm > 0.5
+    assert any("ICP correction" in w for w in refined.warnings)
+    z = refined.cloud.point.positions.numpy()[:, 2]
+    assert abs(np.median(z[(sid == 1) & (np.abs(z) < 5)])) < 0.05
+
+
+def test_sweep_column_splits_one_session(tmp_path):
+    session, cal, _ = write_table_step_sweep(
+        tmp_path / "s", x_mm=np.linspace(-30, 30, 6), sweep=[0, 0, 0, 1, 1, 1]
+    )
+    write_calibration(tmp_path / "c.json", cal)
+    r = scan_session(session, tmp_path / "c.json", ScanOptions(workers=1), None, progress=False)
+    assert r.n_sweeps == 2
+    assert set(np.unique(r.cloud.point.sweep_id.numpy())) == {0, 1}
+
+
+@pytest.mark.parametrize("ext", [".pcd", ".e57"])
+def test_other_formats_by_extension(sweep, tmp_path, ext):
+    session, cal_path, _ = sweep
+    out = tmp_path / f"cloud{ext}"
+    r = scan_session(session, cal_path, ScanOptions(voxel_mm=0.5), out, progress=False)
+    back = read_cloud(out)
+    np.testing.assert_allclose(
+        back.point.positions.numpy(), r.cloud.point.positions.numpy(), atol=1e-6
+    )
+    if ext == ".pcd":
+        assert json.loads((tmp_path / "cloud.pcd.json").read_text())["units"] == "mm"
+
+
+def test_filters_voxel_outliers_normals(dense_sweep, tmp_path):
+    session, cal_path, _ = dense_sweep
+    full = scan_session(session, cal_path, ScanOptions(), None, progress=False)
+    r = scan_session(
+        session,
+        cal_path,
+        ScanOptions(voxel_mm=2.0, outlier_neighbors=10, normals_radius_mm=5.0),
+        None,
+        progress=False,
+    )
+    assert 0 < r.n_points < full.n_points
+    normals = r.cloud.point.normals.numpy()
+    assert np.median(np.abs(normals[:, 2])) > 0.99  # table and block top face up
+
+
+def test_bad_input_is_refused_before_any_work(sweep, tmp_path):
+    session, cal_path, _ = sweep
+    work = tmp_path / "w"
+    # Calibration for another image size.
+    cal = TableStepScene(width=640, height=480).calibration()
+    write_calibration(tmp_path / "big.json", cal)
+    with pytest.raises(InputError, match="images are 320x240, the calibration is for 640x480"):
+        scan_session(
+            session, tmp_path / "big.json", ScanOptions(), tmp_path / "x.ply", work_dir=work
+        )
+    with pytest.raises(InputError, match="calibration file not found"):
+        scan_session(
+            session, tmp_path / "none.json", ScanOptions(), tmp_path / "x.ply", work_dir=work
+        )
+    with pytest.raises(ValueError, match="expected a point-cloud extension"):
+        scan_session(session, cal_path, ScanOptions(), tmp_path / "x.xyz", work_dir=work)
+    # A check session is not a sweep.
+    _shifted_copy(session, tmp_path / "nosweep", dz_mm=0.0)
+    meta = json.loads((tmp_path / "nosweep" / "session.json").read_text())
+    meta["kind"] = "check"
+    meta["target"] = {"kind": "chessboard", "inner_corners": [9, 6], "square_mm": 20.0}
+    (tmp_path / "nosweep" / "session.json").write_text(json.dumps(meta))
+    with pytest.raises(InputError, match="kind: expected 'sweep' for scanning, got 'check'"):
+        scan_session(
+            tmp_path / "nosweep", cal_path, ScanOptions(), tmp_path / "x.ply", work_dir=work
+        )
+    assert not work.exists() and not (tmp_path / "x.ply").exists()
