@@ -1,0 +1,80 @@
+"""`scanner scan` through the command line's entry point."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from scanner.calibration_file import write_calibration
+from scanner.cli import main
+from scanner.scanning.cloud_io import read_cloud
+from scanner.scanning.synthetic import TableStepScene, write_table_step_sweep
+
+
+@pytest.fixture(scope="module")
+def sweep(tmp_path_factory):
+    root = tmp_path_factory.mktemp("cli")
+    session, cal, _ = write_table_step_sweep(root / "session", x_mm=np.linspace(-20, 20, 5))
+    write_calibration(root / "cal.json", cal)
+    return session, root / "cal.json"
+
+
+def test_scan_writes_the_cloud_and_a_summary(sweep, tmp_path, capsys):
+    session, cal = sweep
+    out = tmp_path / "cloud.ply"
+    code = main(["scan", str(session), "--calibration", str(cal), "--out", str(out), "--quiet"])
+    assert code == 0
+    stdout = capsys.readouterr().out
+    assert f"wrote {out}" in stdout
+    assert "points from 5 frames in 1 sweep(s)" in stdout
+    assert len(read_cloud(out).point.positions) > 500
+
+
+def test_scan_options_and_resume(sweep, tmp_path, capsys):
+    session, cal = sweep
+    args = [
+        "scan",
+        str(session),
+        str(session),
+        "--calibration",
+        str(cal),
+        "--quiet",
+        "--mode",
+        "precise",
+        "--voxel-mm",
+        "0.5",
+        "--workdir",
+        str(tmp_path / "w"),
+    ]
+    assert main([*args, "--out", str(tmp_path / "a.e57")]) == 0
+    assert main([*args, "--out", str(tmp_path / "b.pcd")]) == 0
+    stdout = capsys.readouterr().out
+    assert "in 2 sweep(s)" in stdout and "resumed 1 saved chunk(s)" in stdout
+
+
+@pytest.mark.parametrize(
+    ("change", "reason"),
+    [
+        ("no_calibration", "calibration file not found"),
+        ("bad_extension", "expected a .ply, .pcd, .e57 file name"),
+        ("other_size", "images are 320x240, the calibration is for 640x480"),
+        ("no_session", "session folder not found"),
+    ],
+)
+def test_bad_input_exits_2_with_one_line(sweep, tmp_path, capsys, change, reason):
+    session, cal = sweep
+    out = tmp_path / "cloud.ply"
+    if change == "no_calibration":
+        cal = tmp_path / "missing.json"
+    elif change == "bad_extension":
+        out = tmp_path / "cloud.txt"
+    elif change == "other_size":
+        cal = tmp_path / "big.json"
+        write_calibration(cal, TableStepScene(width=640, height=480).calibration())
+    elif change == "no_session":
+        session = tmp_path / "nowhere"
+    code = main(["scan", str(session), "--calibration", str(cal), "--out", str(out), "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2
+    assert len(err) == 1 and err[0].startswith("scanner scan: error:") and reason in err[0]
+    assert not out.exists()
