@@ -116,7 +116,10 @@ def format_value(value: float | None, decimals: int = 3, signed: bool = False) -
     v = float(value)
     if not math.isfinite(v):
         return "NaN" if math.isnan(v) else ("+inf" if v > 0 else "-inf")
-    return f"{v:+.{decimals}f}" if signed else f"{v:.{decimals}f}"
+    text = f"{v:.{decimals}f}"
+    if float(text) == 0.0:  # no "-0.000" for a value that rounds to zero
+        return f"{0.0:.{decimals}f}"
+    return f"{v:+.{decimals}f}" if signed else text
 
 
 def format_tolerance(lower: float | None, upper: float | None, decimals: int = 3) -> str:
