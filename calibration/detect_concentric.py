@@ -24,6 +24,7 @@ The pipeline, every geometric fact coming from the target spec:
 
 from __future__ import annotations
 
+import itertools
 import logging
 from dataclasses import dataclass
 
@@ -566,7 +567,7 @@ def _min_spacing_px(conics: dict[int, NDArray], c: NDArray) -> float:
     dirs = np.column_stack([np.cos(angles), np.sin(angles)])
     ts = {k: _conic_point_on_ray(cn, c, dirs) for k, cn in conics.items()}
     keys = sorted(ts)
-    gaps = [np.nanmin((ts[b] - ts[a]) / (b - a)) for a, b in zip(keys[:-1], keys[1:])]
+    gaps = [np.nanmin((ts[b] - ts[a]) / (b - a)) for a, b in itertools.pairwise(keys)]
     gaps.append(float(np.nanmin(ts[keys[0]])) / (keys[0] + 1))
     return float(max(np.nanmin(gaps), 3.0))
 
@@ -625,7 +626,7 @@ def _refine_ring(
     clear = np.ones(len(pts), bool)
     for ln in axis_lines:
         dist = np.abs(pts @ ln[:2] + ln[2])
-        clear &= dist > 2.5 * half_window + 2
+        clear &= dist > 1.5 * half_window + 2
     pts = pts[inside & clear]
     if len(pts) < 16:
         return None
@@ -680,14 +681,14 @@ def _refine_axes(
                 t = _conic_point_on_ray(conics[k], c, (sgn * dirv)[None, :])[0]
                 ts.append(float(t) if np.isfinite(t) else np.nan)
             ts_a = np.asarray(ts)
-            for a, b in zip(ts_a[:-1], ts_a[1:]):
+            for a, b in itertools.pairwise(ts_a):
                 if not (np.isfinite(a) and np.isfinite(b)):
                     continue
                 gap = b - a
-                clear = 2.5 * half_window + 2
+                clear = half_window + 1.5
                 if gap < 2 * clear + 2:
                     continue
-                n = max(1, int((gap - 2 * clear) / 4))
+                n = max(1, int((gap - 2 * clear) / 2))
                 for tt in np.linspace(a + clear, b - clear, n):
                     samples.append(c + sgn * tt * dirv)
         if len(samples) < 4:
