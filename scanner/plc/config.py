@@ -16,6 +16,7 @@ from typing import Literal
 from scanner.config import load_config, resolve_config
 
 __all__ = [
+    "CalibrationGate",
     "CheckTolerances",
     "JobsConfig",
     "PlcConfig",
@@ -100,7 +101,7 @@ class SourceConfig:
     """
 
     kind: Literal["virtual", "folder"] = "virtual"
-    cell: str = "default"
+    cell: str = "modern"
     folder: str = ""
     seed: int = 0
 
@@ -119,14 +120,24 @@ class CheckTolerances:
 
 
 @dataclass(frozen=True)
+class CalibrationGate:
+    """Quality gate a new calibration must pass before it replaces the current one."""
+
+    max_intrinsics_rms_px: float = 1.0
+    max_light_plane_rms_um: float = 100.0
+    max_hand_eye_rms_px: float = 2.0
+
+
+@dataclass(frozen=True)
 class Recipe:
-    """A scan job selected by register 3: which inspection plan, optionally which object."""
+    """A scan job selected by register 3: which inspection plan, optionally which cell."""
 
     number: int
     name: str
+    #: Inspection plan: a ``configs/plans`` name or a path.
     plan: str
-    #: Virtual-cell object to scan (virtual source only); empty means the cell's default.
-    object: str = ""
+    #: Virtual cell to scan in (virtual source only); empty means ``[source] cell``.
+    cell: str = ""
 
     def __post_init__(self) -> None:
         if not 1 <= self.number <= 65535:
@@ -164,6 +175,7 @@ class PlcConfig:
     storage: StorageConfig = field(default_factory=StorageConfig)
     source: SourceConfig = field(default_factory=SourceConfig)
     check: CheckTolerances = field(default_factory=CheckTolerances)
+    calibration_gate: CalibrationGate = field(default_factory=CalibrationGate)
     jobs: JobsConfig = field(default_factory=JobsConfig)
     recipes: list[Recipe] = field(default_factory=list)
 

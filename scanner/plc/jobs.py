@@ -25,8 +25,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
-from scanner.fileio import InputError
-from scanner.plc.config import CheckTolerances, PlcConfig, Recipe, SourceConfig
+from scanner.fileio import InputError, write_json_atomic
+from scanner.plc.config import (
+    CalibrationGate,
+    CheckTolerances,
+    PlcConfig,
+    Recipe,
+    SourceConfig,
+)
 from scanner.plc.registers import ErrorCode
 
 __all__ = [
@@ -39,6 +45,8 @@ __all__ = [
     "PipelineJobs",
     "SessionSource",
     "VirtualCellSource",
+    "calibration_gate",
+    "check_passed",
     "install_calibration",
     "make_source",
 ]
@@ -164,23 +172,35 @@ class FolderSource:
 
 @dataclass(frozen=True)
 class VirtualCellSource:
-    """Each job captures a fresh session from the virtual cell (``scanner.virtual_cell``)."""
+    """Each job captures a fresh session from the virtual cell (``scanner.virtual_cell``).
 
-    cell: str = "default"
+    The seed is ``seed`` plus the job id, so every job sees new noise and the run is
+    reproducible from the history.
+    """
+
+    cell: str = "modern"
     seed: int = 0
+    workers: int = 1
 
     def acquire(self, kind: str, ctx: JobContext, recipe: Recipe | None = None) -> Path:
         try:
             from scanner.virtual_cell import simulate_cell
         except ImportError as exc:
             raise JobError(ErrorCode.INTERNAL, f"virtual cell not available: {exc}") from None
-        out = ctx.work_dir / "session"
-        kwargs: dict[str, Any] = {"kind": kind, "seed": self.seed + ctx.job_id}
-        if recipe is not None and recipe.object:
-            kwargs["object"] = recipe.object
-        result = _call(simulate_cell, self.cell, out, **kwargs)
-        path = Path(getattr(result, "session_path", None) or getattr(result, "path", None) or out)
-        return path
+        cell = recipe.cell if recipe is not None and recipe.cell else self.cell
+        out = ctx.work_dir / "capture"
+        _call(
+            simulate_cell,
+            cell,
+            out,
+            seed=self.seed + ctx.job_id,
+            sessions=(kind,),
+            workers=self.workers,
+        )
+        session = out / kind
+        if not (session / "session.json").is_file():
+            raise JobError(ErrorCode.NO_SESSION, f"the virtual cell wrote no {kind} session")
+        return session
 
 
 def make_source(config: SourceConfig) -> SessionSource:
@@ -233,10 +253,9 @@ def _call(func: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
         return func(*args, **kwargs)
     except (JobError, JobCancelled):
         raise
-    except InputError as exc:
-        raise JobError(ErrorCode.BAD_INPUT, str(exc)) from exc
-    except FileNotFoundError as exc:
-        raise JobError(ErrorCode.BAD_INPUT, str(exc)) from exc
+    except (InputError, ValueError, FileNotFoundError) as exc:
+        # The pipeline reports bad input (too few frames, target not found...) as ValueError.
+        raise JobError(ErrorCode.BAD_INPUT, " ".join(str(exc).split())) from exc
 
 
 def _mm_to_um(value: Any) -> float | None:
@@ -297,7 +316,11 @@ class PipelineJobs:
         )
 
     def scan(self, ctx: JobContext) -> JobOutcome:
-        """Scan the object of the recipe in register 3 and measure its inspection plan."""
+        """Scan a sweep session and measure the recipe's plan (recipe number in register 3).
+
+        Results: the first three measured values of the plan, converted to µm (a plan's
+        lengths are in mm).
+        """
         recipe = self.config.recipe(ctx.parameter)
         if recipe is None:
             known = ", ".join(str(r.number) for r in self.config.recipes) or "none"
@@ -306,49 +329,90 @@ class PipelineJobs:
                 f"expected a recipe number ({known}), got {ctx.parameter}",
             )
         calibration = self._require_calibration()
+        from scanner.config import resolve_config
+
+        plan = _call(resolve_config, recipe.plan, "plans")
         ctx.session_path = self.source.acquire("sweep", ctx, recipe)
         ctx.check_cancelled()
         from scanner.scanning.pipeline import scan_session
 
         cloud = ctx.work_dir / "cloud.ply"
-        _call(scan_session, ctx.session_path, calibration, cloud)
+        _call(scan_session, ctx.session_path, calibration, out_path=cloud, progress=False)
         ctx.check_cancelled()
         from metrology.measure import measure_cloud
 
-        report = ctx.work_dir / "measurement.json"
-        result = _call(measure_cloud, cloud, recipe.plan, report)
-        figures = list(getattr(result, "results_um", ()) or ())[:3]
+        report = _call(measure_cloud, cloud, plan)
+        report_path = ctx.work_dir / "measurement.json"
+        write_json_atomic(report_path, report.to_json())
+        figures: list[float | None] = [
+            None if r.actual is None else float(r.actual) * 1000.0 for r in report.rows[:3]
+        ]
         figures += [None] * (3 - len(figures))
-        passed = bool(getattr(result, "passed", False))
-        report_path = getattr(result, "report_path", None)
         return JobOutcome(
-            passed=passed,
+            passed=bool(report.passed),
             results_um=(figures[0], figures[1], figures[2]),
-            report_path=Path(report_path) if report_path else report,
-            artefacts=(cloud, report),
+            report_path=report_path,
+            artefacts=(cloud, report_path),
+            message=report.summary(),
         )
 
     def full_calibration(self, ctx: JobContext) -> JobOutcome:
-        """Calibrate from a fresh ``calibration`` session; install it only if it passes."""
+        """Calibrate from a fresh ``calibration`` session; install it only if it passes the gate.
+
+        Results: intrinsics RMS is in pixels, so only result 1 is set: the light-plane RMS, µm.
+        """
         ctx.session_path = self.source.acquire("calibration", ctx)
         ctx.check_cancelled()
         from calibration.pipeline import calibrate_session
+        from scanner.calibration_file import write_calibration
+        from scanner.session import read_session
 
-        new = ctx.work_dir / "calibration.json"
-        result = _call(calibrate_session, ctx.session_path, new)
+        session = _call(read_session, ctx.session_path)
+        result = _call(calibrate_session, session, progress=False)
         ctx.check_cancelled()
-        passed = bool(getattr(result, "passed", True))
-        report_path = getattr(result, "report_path", None)
-        report = Path(report_path) if report_path else None
+        new = ctx.work_dir / "calibration.json"
+        write_calibration(new, result.calibration)
+        quality = result.calibration.quality
+        passed, reason, plane_um = calibration_gate(quality, self.config.calibration_gate)
+        results = (plane_um, None, None)
         if not passed:
-            reason = getattr(result, "reason", "") or "quality gate failed"
             return JobOutcome(
                 passed=False,
-                report_path=report,
+                results_um=results,
                 artefacts=(new,),
                 error=ErrorCode.QUALITY_GATE,
-                message=str(reason),
+                message=reason,
             )
         kept = install_calibration(new, self.calibration_path)
         log.info("calibration installed at %s (previous kept as %s)", self.calibration_path, kept)
-        return JobOutcome(passed=True, report_path=report, artefacts=(new,))
+        return JobOutcome(passed=True, results_um=results, report_path=new, artefacts=(new,))
+
+
+def calibration_gate(
+    quality: dict[str, Any], gate: CalibrationGate
+) -> tuple[bool, str, float | None]:
+    """Judge a calibration's quality record; ``(passed, reason, light-plane RMS in µm)``.
+
+    A figure missing from the record fails the gate (it cannot be judged).
+    """
+
+    def figure(section: str, key: str) -> float | None:
+        part = quality.get(section) if isinstance(quality, dict) else None
+        value = part.get(key) if isinstance(part, dict) else None
+        return float(value) if isinstance(value, int | float) else None
+
+    intrinsics_px = figure("intrinsics", "rms_px")
+    plane_mm = figure("light_plane", "rms_mm")
+    hand_eye_px = figure("hand_eye", "rms_px")
+    plane_um = None if plane_mm is None else plane_mm * 1000.0
+    checks = (
+        ("intrinsics RMS", intrinsics_px, gate.max_intrinsics_rms_px, "px"),
+        ("light-plane RMS", plane_um, gate.max_light_plane_rms_um, "um"),
+        ("hand-eye RMS", hand_eye_px, gate.max_hand_eye_rms_px, "px"),
+    )
+    for name, value, limit, unit in checks:
+        if value is None:
+            return False, f"{name} missing from the calibration's quality record", plane_um
+        if value > limit:
+            return False, f"{name} {value:.3g} {unit} over the limit {limit:g} {unit}", plane_um
+    return True, "", plane_um

@@ -13,7 +13,8 @@ def test_shipped_config_loads_and_binds_loopback():
     assert config.server.host == "127.0.0.1"
     assert config.server.port == 5020
     assert config.recipe(1) is not None
-    assert config.recipe(2) is None
+    assert config.recipe(99) is None
+    assert config.jobs.worker == "process"
 
 
 @pytest.mark.parametrize(

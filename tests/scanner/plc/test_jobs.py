@@ -8,13 +8,14 @@ from pathlib import Path
 
 import pytest
 
-from scanner.plc.config import CheckTolerances, PlcConfig, Recipe, StorageConfig
+from scanner.plc.config import CalibrationGate, CheckTolerances, PlcConfig, Recipe, StorageConfig
 from scanner.plc.jobs import (
     FolderSource,
     JobCancelled,
     JobContext,
     JobError,
     PipelineJobs,
+    calibration_gate,
     check_passed,
     install_calibration,
 )
@@ -97,3 +98,21 @@ def test_cancellation_is_raised_at_the_next_check(tmp_path: Path):
     ctx.cancel.set()
     with pytest.raises(JobCancelled):
         ctx.check_cancelled()
+
+
+def test_calibration_gate_judges_the_quality_record():
+    gate = CalibrationGate(
+        max_intrinsics_rms_px=0.5, max_light_plane_rms_um=50, max_hand_eye_rms_px=1
+    )
+    good = {
+        "intrinsics": {"rms_px": 0.2},
+        "light_plane": {"rms_mm": 0.012},
+        "hand_eye": {"rms_px": 0.4},
+    }
+    assert calibration_gate(good, gate) == (True, "", pytest.approx(12.0))
+    bad = {**good, "light_plane": {"rms_mm": 0.08}}
+    passed, reason, plane_um = calibration_gate(bad, gate)
+    assert not passed and "light-plane RMS 80 um over the limit 50 um" in reason
+    assert plane_um == pytest.approx(80.0)
+    passed, reason, _ = calibration_gate({"intrinsics": {"rms_px": 0.2}}, gate)
+    assert not passed and "missing" in reason
