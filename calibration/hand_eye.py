@@ -327,8 +327,6 @@ def _adjust(
     # Robust scale: a few times the typical residual, never below a quarter pixel.
     f_scale = max(0.25, 3.0 * 1.4826 * float(np.median(r0)))
     sol = least_squares(fun, p0, loss="soft_l1", f_scale=f_scale, x_scale="jac", max_nfev=200)
-    # Polish with plain least squares on the inliers' scale (same minimum when no outliers).
-    sol = least_squares(fun, sol.x, x_scale="jac", max_nfev=100)
     x, z, cam = unpack(sol.x)
     dof = max(1, sol.fun.size - sol.x.size)
     sigma2 = float(np.sum(sol.fun**2) / dof)

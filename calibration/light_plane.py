@@ -133,6 +133,7 @@ def fit_plane_robust(
     threshold_mm: float = 0.2,
     iterations: int = 300,
     seed: int = 0,
+    groups: ArrayLike | None = None,
 ) -> PlaneFit:
     """RANSAC over minimal triples, then total least squares on the inliers.
 
@@ -144,6 +145,10 @@ def fit_plane_robust(
     iterations : int
     seed : int
         RANSAC is seeded: the same points give the same plane.
+    groups : array_like of int, shape (N,), optional
+        Which frame each point comes from. Then every hypothesis takes its three points from
+        at least two frames (one frame's stripe is a line: any plane through it fits it) and
+        the consensus counts every frame equally (inliers weighted by 1 / frame size).
 
     Returns
     -------
@@ -153,10 +158,23 @@ def fit_plane_robust(
     p = check_points(points, min_count=3)
     rng = np.random.default_rng(seed)
     best = np.ones(len(p), bool)
-    best_count = -1
+    best_count = -1.0
+    weight = np.ones(len(p))
+    labels = None
+    if groups is not None:
+        labels = np.asarray(groups).reshape(-1)
+        if labels.shape != (len(p),):
+            raise ValueError(f"groups: expected shape ({len(p)},), got {labels.shape}")
+        uniq, inverse, counts = np.unique(labels, return_inverse=True, return_counts=True)
+        weight = 1.0 / counts[inverse]
+        if len(uniq) < 2:
+            labels = None
     if len(p) > 3:
         for _ in range(iterations):
             idx = rng.choice(len(p), 3, replace=False)
+            if labels is not None and labels[idx[0]] == labels[idx[1]] == labels[idx[2]]:
+                others = np.flatnonzero(labels != labels[idx[0]])
+                idx[2] = others[rng.integers(len(others))]
             a, b, c = p[idx]
             n = np.cross(b - a, c - a)
             norm = np.linalg.norm(n)
@@ -164,7 +182,7 @@ def fit_plane_robust(
                 continue
             n /= norm
             inl = np.abs((p - a) @ n) < threshold_mm
-            count = int(inl.sum())
+            count = float(weight[inl].sum())
             if count > best_count:
                 best, best_count = inl, count
     for _ in range(3):  # TLS on the consensus, re-select inliers at the same threshold
@@ -194,6 +212,32 @@ def stripe_points_on_target(
     n = cam_from_target[:3, 2]
     d = -float(n @ cam_from_target[:3, 3])
     return intersect_rays_with_plane(camera.rays(uv), n, d)
+
+
+def _stripe_line_inliers(points_cam: NDArray, cam_from_target: NDArray, threshold_mm: float) -> NDArray:
+    """The points on the frame's dominant straight line (in the target plane), RANSAC + TLS."""
+    pt = transform_points(np.linalg.inv(cam_from_target), points_cam)[:, :2]
+    rng = np.random.default_rng(0)
+    best = np.zeros(len(pt), bool)
+    for _ in range(100):
+        i, j = rng.choice(len(pt), 2, replace=False)
+        d = pt[j] - pt[i]
+        norm = float(np.hypot(*d))
+        if norm < 1e-6:
+            continue
+        normal = np.array([-d[1], d[0]]) / norm
+        inl = np.abs((pt - pt[i]) @ normal) < threshold_mm
+        if inl.sum() > best.sum():
+            best = inl
+    for _ in range(3):
+        if best.sum() < 2:
+            break
+        c = pt[best].mean(axis=0)
+        _, _, vt = np.linalg.svd(pt[best] - c)
+        r = np.abs((pt - c) @ vt[1])
+        rms = float(np.sqrt(np.mean(r[best] ** 2)))
+        best = r < min(threshold_mm, max(4.0 * rms, 0.05))
+    return points_cam[best]
 
 
 @dataclass
@@ -255,9 +299,10 @@ def calibrate_light_plane(
     views: Sequence[LaserView],
     camera: CameraModel,
     min_frames: int = 2,
-    ransac_threshold_mm: float = 0.3,
+    ransac_threshold_mm: float = 1.0,
     reject_factor: float = 4.0,
     max_points_per_frame: int = 400,
+    line_threshold_mm: float = 0.5,
 ) -> LightPlaneResult:
     """Fit the light plane to the stripe points of every laser frame with a known target pose.
 
@@ -273,6 +318,10 @@ def calibrate_light_plane(
         median frame's (and 0.05 mm) is rejected and the plane refitted without it.
     max_points_per_frame : int
         Stripe points are thinned evenly to this many per frame (equal weight per frame).
+    line_threshold_mm : float
+        On the target plane one frame's stripe is a straight line: points farther than this
+        from the frame's dominant line (RANSAC) are other peaks (print, reflections) and are
+        dropped before the plane fit.
 
     Returns
     -------
@@ -290,6 +339,8 @@ def calibrate_light_plane(
             x0, x1, y0, y1 = v.target_extent_mm
             keep = (pt[:, 0] >= x0) & (pt[:, 0] <= x1) & (pt[:, 1] >= y0) & (pt[:, 1] <= y1)
             pts = pts[keep]
+        if len(pts) >= 10:
+            pts = _stripe_line_inliers(pts, v.cam_from_target, line_threshold_mm)
         if len(pts) < 10:
             rejected.append(
                 {
@@ -304,7 +355,9 @@ def calibrate_light_plane(
 
     def fit(ids: list[int]) -> PlaneFit:
         return fit_plane_robust(
-            np.vstack([per_frame_pts[i] for i in ids]), threshold_mm=ransac_threshold_mm
+            np.vstack([per_frame_pts[i] for i in ids]),
+            threshold_mm=ransac_threshold_mm,
+            groups=np.concatenate([np.full(len(per_frame_pts[i]), i) for i in ids]),
         )
 
     ids = list(per_frame_pts)

@@ -164,10 +164,9 @@ def _extract(session: Session, frame: Frame) -> NDArray:
 
         background = load_gray_image(frame.laser_off_image, laser=True)
     prof = extract_stripe(image, mode="precise", background=background)
-    # Keep clean points only: no reflections, saturation or secondary segments.
-    bad = 1 | 2 | 16
-    keep = (prof.flags & bad) == 0
-    return np.column_stack([prof.u[keep], prof.v[keep]])
+    # Every peak is kept: the light-plane fit keeps, per frame, only the points on the target
+    # that lie on one straight line, which drops print edges and reflections.
+    return np.column_stack([prof.u, prof.v])
 
 
 def _paper_plane_views(
