@@ -42,7 +42,7 @@ import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Literal, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -57,6 +57,7 @@ __all__ = [
     "Nominal",
     "Plan",
     "Region",
+    "load_dataclass",
     "load_plan",
 ]
 
@@ -66,6 +67,7 @@ FEATURE_KINDS: tuple[str, ...] = ("plane", "sphere", "cylinder", "circle", "line
 MEASUREMENT_TYPES: tuple[str, ...] = ("distance", "diameter", "flatness", "form", "angle")
 
 Vec3 = tuple[float, float, float]
+T = TypeVar("T")
 
 #: Kinds whose feature is a point for distances (their centre).
 POINT_KINDS = ("sphere", "circle")
@@ -361,6 +363,21 @@ def _join_key_path(msg: str) -> str:
     return msg
 
 
+def load_dataclass(cls: type[T], path: str | os.PathLike[str]) -> T:
+    """Load TOML ``path`` into dataclass ``cls`` (:func:`scanner.config.from_dict`), with
+    errors that name the file, the line (found inside the right ``[[array]]`` table) and the
+    full key path."""
+    p = Path(path)
+    data = load_toml(p)
+    try:
+        return from_dict(cls, data)
+    except ValueError as exc:
+        msg = _join_key_path(str(exc))
+        key = msg.split(":", 1)[0]
+        line = _line_of(p.read_text(encoding="utf-8"), key)
+        raise ConfigError(f"{p}, line {line}" if line else p, msg) from None
+
+
 def load_plan(path: str | os.PathLike[str]) -> Plan:
     """Load and validate an inspection plan.
 
@@ -372,12 +389,4 @@ def load_plan(path: str | os.PathLike[str]) -> Plan:
     InputError
         The file is missing or not TOML.
     """
-    p = Path(path)
-    data = load_toml(p)
-    try:
-        return from_dict(Plan, data)
-    except ValueError as exc:
-        msg = _join_key_path(str(exc))
-        key = msg.split(":", 1)[0]
-        line = _line_of(p.read_text(encoding="utf-8"), key)
-        raise ConfigError(f"{p}, line {line}" if line else p, msg) from None
+    return load_dataclass(Plan, path)

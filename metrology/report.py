@@ -28,10 +28,13 @@ from scanner import reporting as rep
 from scanner.fileio import atomic_output, write_json_atomic
 
 __all__ = [
+    "acceptance_html",
     "deviation_limit",
     "histogram_figure",
+    "measurement_html",
     "provenance_items",
     "render_cloud_png",
+    "write_acceptance_report",
     "write_measurement_report",
     "write_rows_csv",
 ]
@@ -405,4 +408,115 @@ def write_measurement_report(report: Any, out_json: str | os.PathLike[str]) -> d
     write_json_atomic(paths["json"], data)
     write_rows_csv(paths["csv"], report.rows)
     rep.write_page(paths["html"], measurement_html(report))
+    return paths
+
+
+# --------------------------------------------------------------------------------------------
+# Acceptance report (VDI/VDE 2634 Part 2)
+# --------------------------------------------------------------------------------------------
+
+
+def acceptance_html(result: Any) -> str:
+    """The complete HTML page of an :class:`~metrology.acceptance.AcceptanceResult`."""
+    spec = result.spec
+    cloud_name = Path(result.cloud_path).name if result.cloud_path else "points given in memory"
+    body = [
+        rep.summary_line(result.rows, detail=f"{spec.name}, cloud {cloud_name}"),
+        rep.section(
+            "Characteristics",
+            rep.tolerance_table(result.rows),
+            note="Tolerance column: the maximum permissible error (MPE). PF and F are ranges "
+            "(never negative, pass when <= MPE); PS and SD are signed deviations (pass when "
+            "|deviation| <= MPE).",
+        ),
+    ]
+    png, renderer = render_cloud_png(
+        result.points_base, result.deviations_mm, title=f"{cloud_name}: artefact residuals"
+    )
+    limit = deviation_limit(result.deviations_mm)
+    body.append(
+        rep.section(
+            "Scan coloured by residual",
+            rep.figure(
+                png,
+                f"Residuals of the sphere and plane fits (±{limit * 1000:.0f} µm); grey = not "
+                f"part of an artefact. Rendered with {renderer}.",
+            ),
+        )
+    )
+    residuals = [(name, f.residuals_mm) for name, f in result.fits.items() if f]
+    if residuals:
+        body.append(
+            rep.section(
+                "Residual histograms",
+                rep.figure(
+                    histogram_figure(residuals), "Radial (spheres) and normal (plate) residuals"
+                ),
+            )
+        )
+    rows = []
+    for name, fit in result.fits.items():
+        rows.append(
+            [
+                name,
+                fit.kind,
+                fit.n_inliers if fit else 0,
+                int(result.n_excluded.get(name, 0)),
+                _fit_parameters(fit),
+                fit.rms_mm * 1000 if fit else None,
+                fit.range_mm * 1000 if fit else None,
+            ]
+        )
+    body.append(
+        rep.section(
+            "Fits",
+            rep.table(
+                ["Artefact", "Kind", "Points", "Excluded", "Fitted geometry", "RMS µm", "Range µm"],
+                rows,
+                decimals=1,
+            ),
+            note=f"Excluded: the {spec.outlier_fraction * 100:.1f} % of points with the largest "
+            "residuals, as the guideline permits, before the final least-squares fit.",
+        )
+    )
+    mpe = spec.mpe
+    spec_items: list[tuple[str, Any]] = [
+        ("standard", "VDI/VDE 2634 Part 2, one scan (the full test repeats it in several "
+         "positions and keeps the worst values)"),
+        ("specification", result.spec_path or spec.name),
+        ("cell", spec.cell or "-"),
+        ("calibrated centre distance", f"{spec.calibrated_distance_mm:.4f} mm"),
+    ]  # fmt: skip
+    for s in spec.spheres:
+        spec_items.append((f"{s.name} calibrated diameter", f"{s.calibrated_diameter_mm:.4f} mm"))
+    spec_items += [
+        ("MPE PF / PS / SD / F", f"{mpe.probing_form_mm:.4f} / {mpe.probing_size_mm:.4f} / "
+         f"{mpe.sphere_spacing_mm:.4f} / {mpe.flatness_mm:.4f} mm"),
+    ]  # fmt: skip
+    body.append(rep.section("Specification", rep.key_value_table(spec_items)))
+    items = provenance_items(result.provenance, result.cloud_path)
+    items += [
+        ("evaluated", result.created.strftime("%Y-%m-%d %H:%M:%S UTC")),
+        ("run time", f"{result.seconds:.2f} s"),
+    ]
+    body.append(rep.section("Calibration and inputs", rep.key_value_table(items)))
+    return rep.page(
+        f"Acceptance test (VDI/VDE 2634-2) — {spec.name}",
+        "".join(body),
+        subtitle=spec.description,
+        generated=result.created,
+    )
+
+
+def write_acceptance_report(result: Any, out_json: str | os.PathLike[str]) -> dict[str, Path]:
+    """Write ``<out>.json``, ``<out>.csv`` and ``<out>.html`` for an acceptance result."""
+    out = Path(out_json)
+    if out.suffix.lower() != ".json":
+        raise ValueError(f"--out: expected a .json file name, got {out.name!r}")
+    paths = {"json": out, "csv": out.with_suffix(".csv"), "html": out.with_suffix(".html")}
+    data = result.to_json()
+    data["files"] = {"csv": paths["csv"].name, "html": paths["html"].name}
+    write_json_atomic(paths["json"], data)
+    write_rows_csv(paths["csv"], result.rows)
+    rep.write_page(paths["html"], acceptance_html(result))
     return paths
