@@ -214,7 +214,9 @@ def stripe_points_on_target(
     return intersect_rays_with_plane(camera.rays(uv), n, d)
 
 
-def _stripe_line_inliers(points_cam: NDArray, cam_from_target: NDArray, threshold_mm: float) -> NDArray:
+def _stripe_line_inliers(
+    points_cam: NDArray, cam_from_target: NDArray, threshold_mm: float
+) -> NDArray:
     """The points on the frame's dominant straight line (in the target plane), RANSAC + TLS."""
     pt = transform_points(np.linalg.inv(cam_from_target), points_cam)[:, :2]
     rng = np.random.default_rng(0)

@@ -1,0 +1,248 @@
+"""Accuracy and speed of the intrinsics: concentric target (default and paper) vs a chessboard.
+
+Renders 20 views of the cell's concentric target with the virtual cell (lens distortion,
+blur, noise, vignetting), and a chessboard (11 x 8 inner corners, 14 mm) at the same poses,
+detects, calibrates and prints a table method x figure against the cell's true camera:
+
+* fx, fy relative error (%), cx, cy error (px),
+* the largest distance over the whole image between pixels mapped through the true and the
+  estimated camera (same ray), which judges the distortion model,
+* RMS residual and time.
+
+Real data (``../shared/data/real``, or ``SCANNER_REAL_DATA``) is calibrated too when present.
+
+Run: ``python benchmarks/bench_intrinsics.py [--cell modern] [--views 20] [--no-real]``.
+Rendered images are cached in the system temporary folder (``--fresh`` to re-render).
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # small dense algebra: threads only contend
+
+import argparse
+import logging
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from calibration.detect import detect_target
+from calibration.intrinsics import IntrinsicsResult, calibrate_intrinsics
+from scanner.camera import CameraModel
+from scanner.conventions import make_transform
+from scanner.targets import ChessboardTarget
+
+log = logging.getLogger("bench_intrinsics")
+
+CHESSBOARD = ChessboardTarget(inner_corners=(11, 8), square_mm=14.0)
+
+
+def spread_poses(cell, n: int, rng: np.random.Generator, max_tilt_deg: float = 45.0) -> list:
+    """``cam_from_target`` of n hand-held views whose centres spread over the whole image.
+
+    The target centre is put on the ray of a random pixel of the central 80 % of the image at
+    0.9-1.1 working distances, tilted up to ``max_tilt_deg`` about a random in-plane axis, any
+    in-plane rotation: the rings reach the image corners, as a calibration capture should.
+    """
+    cam = cell.camera_model()
+    w, h = cam.width, cam.height
+    wd = cell.capture.working_distance_mm
+    poses = []
+    face = Rotation.from_euler("x", 180, degrees=True)  # target z towards the camera
+    for i in range(n):
+        # stratify the image positions over a grid so every region is covered
+        gx, gy = i % 5, (i // 5) % 4
+        u = (0.1 + 0.8 * (gx + rng.uniform(0.2, 0.8)) / 5) * w
+        v = (0.1 + 0.8 * (gy + rng.uniform(0.2, 0.8)) / 4) * h
+        ray = np.linalg.solve(cam.K, [u, v, 1.0])
+        ray /= np.linalg.norm(ray)
+        # Align the target's normal with the viewing ray, then tilt and roll.
+        align, _ = Rotation.align_vectors([[0, 0, 1.0]], [ray])
+        tilt = np.radians(max_tilt_deg) * np.sqrt(rng.uniform(0.05, 1.0))
+        az = rng.uniform(0, 2 * np.pi)
+        tilt_rot = Rotation.from_rotvec(tilt * np.array([np.cos(az), np.sin(az), 0.0]))
+        roll = Rotation.from_euler("z", rng.uniform(0, 360), degrees=True)
+        rot = align.inv() * tilt_rot * face * roll
+        poses.append(make_transform(rot, ray * wd * rng.uniform(0.9, 1.1)))
+    return poses
+
+
+def render_views(cell_name: str, n: int, fresh: bool = False) -> tuple[list, list, list, list]:
+    """(poses, concentric images, chessboard images, chessboard poses), cached on disk."""
+    from scanner.virtual_cell import load_cell, render_target_image
+
+    cell = load_cell(cell_name)
+    cache = Path(tempfile.gettempdir()) / f"scanner_bench_intrinsics_{cell_name}_{n}"
+    cache.mkdir(parents=True, exist_ok=True)
+    poses = spread_poses(cell, n, np.random.default_rng(2026))
+    cols, rows = CHESSBOARD.inner_corners
+    centre = make_transform(
+        np.eye(3),
+        [-(cols - 1) / 2 * CHESSBOARD.square_mm, -(rows - 1) / 2 * CHESSBOARD.square_mm, 0],
+    )
+    ring_imgs, cb_imgs, cb_poses = [], [], []
+    for i, pose in enumerate(poses):
+        cb_pose = pose @ centre
+        cb_poses.append(cb_pose)
+        for kind, p, target, out in (
+            ("ring", pose, None, ring_imgs),
+            ("cb", cb_pose, CHESSBOARD, cb_imgs),
+        ):
+            path = cache / f"{kind}_{i:02d}.png"
+            if fresh or not path.is_file():
+                img = render_target_image(
+                    cell, p, np.random.default_rng(1000 * (kind == "cb") + i), target=target
+                )
+                cv2.imwrite(str(path), img)
+            out.append(cv2.imread(str(path), cv2.IMREAD_UNCHANGED))
+    return poses, ring_imgs, cb_imgs, cb_poses
+
+
+def max_mapping_error_px(truth: CameraModel, K: NDArray, dist: NDArray, step: int = 8) -> float:
+    """Largest pixel distance, over the whole image, between truth and estimate for one ray."""
+    uu, vv = np.meshgrid(np.arange(0, truth.width, step), np.arange(0, truth.height, step))
+    uv = np.column_stack([uu.ravel(), vv.ravel()]).astype(np.float64)
+    xy = truth.normalize(uv)
+    est = CameraModel(truth.width, truth.height, K, dist)
+    back = est.project(np.column_stack([xy, np.ones(len(xy))]))
+    return float(np.max(np.linalg.norm(back - uv, axis=1)))
+
+
+def figures(truth: CameraModel, K: NDArray, dist: NDArray) -> dict[str, float]:
+    return {
+        "fx_%": (K[0, 0] / truth.K[0, 0] - 1) * 100,
+        "fy_%": (K[1, 1] / truth.K[1, 1] - 1) * 100,
+        "cx_px": K[0, 2] - truth.K[0, 2],
+        "cy_px": K[1, 2] - truth.K[1, 2],
+        "map_px": max_mapping_error_px(truth, K, dist),
+    }
+
+
+def opencv_chessboard(images: list, size: tuple[int, int]) -> tuple[NDArray, NDArray, float, int]:
+    """The anchor: findChessboardCornersSB + calibrateCamera (5 distortion terms)."""
+    obj, img = [], []
+    for im in images:
+        found, corners = cv2.findChessboardCornersSB(
+            im, CHESSBOARD.inner_corners, flags=cv2.CALIB_CB_ACCURACY | cv2.CALIB_CB_EXHAUSTIVE
+        )
+        if found:
+            obj.append(CHESSBOARD.object_points().astype(np.float32))
+            img.append(corners.reshape(-1, 2).astype(np.float32))
+    rms, K, dist, _, _ = cv2.calibrateCamera(obj, img, size, None, None)
+    return K, dist.ravel()[:5], float(rms), len(obj)
+
+
+def row(name: str, fig: dict[str, float], rms: float, secs: float, views: int) -> str:
+    return (
+        f"| {name:<34} | {fig['fx_%']:+.5f} | {fig['fy_%']:+.5f} | {fig['cx_px']:+.3f} | "
+        f"{fig['cy_px']:+.3f} | {fig['map_px']:.3f} | {rms:.4f} | {views:>2} | {secs:5.1f} |"
+    )
+
+
+def bench_cell(cell_name: str, n: int, fresh: bool) -> list[str]:
+    from scanner.virtual_cell import load_cell
+
+    cell = load_cell(cell_name)
+    truth = cell.camera_model()
+    size = (truth.width, truth.height)
+    t0 = time.perf_counter()
+    _, ring_imgs, cb_imgs, _ = render_views(cell_name, n, fresh)
+    log.info("rendered/loaded %d views in %.1f s", n, time.perf_counter() - t0)
+    target = cell.target_spec()
+    lines = [
+        f"\n## Cell `{cell_name}`: {n} views, {size[0]}x{size[1]}, true fx {truth.K[0, 0]}, "
+        f"dist {truth.dist.tolist()}\n",
+        "| method | fx err % | fy err % | cx err px | cy err px | max map err px | RMS px | views | s |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    t0 = time.perf_counter()
+    obs = [detect_target(im, target) for im in ring_imgs]
+    t_det = time.perf_counter() - t0
+    found = sum(bool(o) for o in obs)
+    lines.append(
+        f"| concentric detection: {found}/{n} found, {t_det / n:.2f} s per image | | | | | | | | |"
+    )
+    t0 = time.perf_counter()
+    res: IntrinsicsResult = calibrate_intrinsics(obs, size, method="default")
+    t_cal = time.perf_counter() - t0
+    lines.append(
+        row(
+            "concentric, default (ours)",
+            figures(truth, res.K, res.dist),
+            res.rms_px,
+            t_cal,
+            len(res.view_indices),
+        )
+    )
+    for variant, est in res.paper.items():
+        if est:
+            lines.append(
+                row(
+                    f"concentric, paper ({variant})",
+                    figures(truth, est.K, np.zeros(5)),
+                    float("nan"),
+                    0.0,
+                    found,
+                )
+            )
+        else:
+            lines.append(f"| concentric, paper ({variant}): failed: {est.reason} | | | | | | | | |")
+    t0 = time.perf_counter()
+    K, dist, rms, nv = opencv_chessboard(cb_imgs, size)
+    lines.append(
+        row(
+            "chessboard, OpenCV SB + calibrateCamera",
+            figures(truth, K, dist),
+            rms,
+            time.perf_counter() - t0,
+            nv,
+        )
+    )
+    cb_obs = [detect_target(im, CHESSBOARD) for im in cb_imgs]
+    t0 = time.perf_counter()
+    cres = calibrate_intrinsics(cb_obs, size)
+    lines.append(
+        row(
+            "chessboard, our detection + default",
+            figures(truth, cres.K, cres.dist),
+            cres.rms_px,
+            time.perf_counter() - t0,
+            len(cres.view_indices),
+        )
+    )
+    if res.warnings:
+        lines.append(f"\nwarnings: {res.warnings}")
+    if res.rejected:
+        lines.append(f"rejected: {res.rejected}")
+    return lines
+
+
+def real_rows() -> list[str]:
+    """Real data sets against their published or reference results (filled below)."""
+    return []
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cell", action="append", help="cell name(s), default modern and paper")
+    ap.add_argument("--views", type=int, default=20)
+    ap.add_argument("--fresh", action="store_true", help="re-render the cached images")
+    ap.add_argument("--no-real", action="store_true")
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    out = ["# Intrinsics benchmark"]
+    for name in args.cell or ["modern", "paper"]:
+        out += bench_cell(name, args.views, args.fresh)
+    if not args.no_real:
+        out += real_rows()
+    print("\n".join(out))
+
+
+if __name__ == "__main__":
+    main()
