@@ -299,7 +299,7 @@ def _fit_parameters(fit: Any) -> str:
         return f"failed: {fit.reason}"
 
     def v3(a: NDArray, d: int = 3) -> str:
-        return "(" + ", ".join(f"{x:.{d}f}" for x in a) + ")"
+        return "(" + ", ".join(rep.format_value(float(x), d) for x in a) + ")"
 
     kind = fit.kind
     if kind == "plane":
@@ -424,7 +424,7 @@ def acceptance_html(result: Any) -> str:
         rep.summary_line(result.rows, detail=f"{spec.name}, cloud {cloud_name}"),
         rep.section(
             "Characteristics",
-            rep.tolerance_table(result.rows),
+            rep.tolerance_table(result.rows, decimals=4),
             note="Tolerance column: the maximum permissible error (MPE). PF and F are ranges "
             "(never negative, pass when <= MPE); PS and SD are signed deviations (pass when "
             "|deviation| <= MPE).",
