@@ -96,6 +96,9 @@ class StripeOptions:
         Grey level counted as saturated; ``None``: the dtype's maximum (255, 65535).
     noise : float or None
         Image noise (grey levels); ``None``: estimated from pixel differences.
+    background_level : float or None
+        Typical background grey level for the candidate threshold; ``None``: the median of a
+        sparse grid of pixels.
     link_px : float
         Peaks on neighbouring lines closer than this along the line belong to one segment.
     reflection_ratio : float
@@ -114,6 +117,7 @@ class StripeOptions:
     min_relative_peak: float = 0.15
     saturation: float | None = None
     noise: float | None = None
+    background_level: float | None = None
     link_px: float = 3.0
     reflection_ratio: float = 0.6
     low_contrast_ratio: float = 0.25
@@ -253,7 +257,7 @@ def _median(values: NDArray) -> float:
     return float(np.median(v))
 
 
-def estimate_noise(image: NDArray, step: int = 16) -> float:
+def estimate_noise(image: NDArray, step: int = 32) -> float:
     """Robust standard deviation of the image noise, grey levels (at least 0.5).
 
     From the median absolute difference of horizontally adjacent pixels on every ``step``-th
@@ -306,85 +310,109 @@ class _Peaks:
 
 
 def _measure(
-    img: NDArray, lines: NDArray, cols: NDArray, hw: int, sat: float, noise: float
-) -> _Peaks:
-    """Centre of gravity around integer peak columns ``cols`` on ``lines`` (vectorised)."""
+    img: NDArray,
+    lines: NDArray,
+    cols: NDArray,
+    hw: int,
+    sat: float,
+    count_above: float | None = None,
+) -> tuple[_Peaks, NDArray | None]:
+    """Centre of gravity around integer peak columns ``cols`` on ``lines`` (vectorised).
+
+    Returns the peaks and, when ``count_above`` is given, how many window pixels exceed it.
+    """
     W = img.shape[1]
     flat = img.reshape(-1)
     off = np.arange(-hw - 2, hw + 3)
     c = cols[:, None] + off
-    inside = (c >= 0) & (c < W)
-    vals = flat.take(lines[:, None] * W + np.clip(c, 0, W - 1)).astype(np.float32)
-    peak = flat.take(lines * W + cols).astype(np.float32)
+    near = np.flatnonzero((cols < hw + 2) | (cols >= W - hw - 2))
+    if near.size:
+        inside_near = (c[near] >= 0) & (c[near] < W)
+        np.clip(c, 0, W - 1, out=c)
+    idx = c
+    idx += (lines * W)[:, None]
+    vals = flat.take(idx)
+    counts = None
+    if count_above is not None:
+        core_raw = vals[:, 2:-2]
+        counts = np.count_nonzero(core_raw > count_above, axis=1)
+    vals = vals.astype(np.float32)
+    peak = vals[:, hw + 2].copy()
 
     # Linear background from two flank pixels each side (a missing side: the other one, flat).
-    lf_ok = inside[:, 0] & inside[:, 1]
-    rf_ok = inside[:, -1] & inside[:, -2]
     left = 0.5 * (vals[:, 0] + vals[:, 1])
     right = 0.5 * (vals[:, -1] + vals[:, -2])
-    left = np.where(lf_ok, left, right)
-    right = np.where(rf_ok, right, left)
+    if near.size:
+        lf_ok = inside_near[:, 0] & inside_near[:, 1]
+        rf_ok = inside_near[:, -1] & inside_near[:, -2]
+        ln, rn = left[near], right[near]
+        left[near] = np.where(lf_ok, ln, rn)
+        right[near] = np.where(rf_ok, rn, ln)
     xc = off[2:-2].astype(np.float32)
-    span = float(2 * hw + 3)
-    slope = (right - left) / span
-    ramp = 0.5 * (left + right)[:, None] + slope[:, None] * xc[None, :]
-    w = vals[:, 2:-2] - ramp
-    core_in = inside[:, 2:-2]
-    # Symmetric window about the peak pixel when the border cuts it.
-    sym = core_in & core_in[:, ::-1]
-    border = ~np.all(core_in, axis=1)
-    w = np.where(sym, w, 0.0)
-    contrast = peak - (0.5 * (left + right))
+    slope = (right - left) * np.float32(1.0 / (2 * hw + 3))
+    mean = 0.5 * (left + right)
+    w = vals[:, 2:-2]
+    w -= mean[:, None]
+    w -= slope[:, None] * xc[None, :]
+    border = np.zeros(len(cols), bool)
+    if near.size:
+        # Symmetric window about the peak pixel where the border cuts it.
+        core_in = inside_near[:, 2:-2]
+        sym_near = core_in & core_in[:, ::-1]
+        w[near] = np.where(sym_near, w[near], 0.0)
+        border[near] = ~np.all(core_in, axis=1)
+    contrast = peak - mean
 
     sw = w.sum(axis=1)
     ok = sw > 0
     safe = np.where(ok, sw, 1.0)
-    mu = (w * xc).sum(axis=1) / safe
-    var = (w * (xc - mu[:, None]) ** 2).sum(axis=1) / safe
-    width = _FWHM_PER_SIGMA * np.sqrt(np.clip(var, 0.0, None))
-    pos = cols.astype(np.float64) + mu
+    mu = (w @ xc) / safe
+    var = (w @ (xc * xc)) / safe - mu * mu
+    width = _FWHM_PER_SIGMA * np.sqrt(np.maximum(var, 0.0))
+    pos = cols + mu.astype(np.float64)
     flags = np.zeros(len(cols), np.uint8)
 
     # A second maximum inside the window (a reflection or another segment a few pixels away)
     # would pull the centre of gravity between the two: measure those on the peak alone.
     inner = w[:, 1:-1]
-    level = 0.3 * np.maximum(contrast, 0.0)[:, None]
+    level = (0.3 * np.maximum(contrast, 0.0))[:, None]
     local_max = (inner > w[:, :-2]) & (inner >= w[:, 2:]) & (inner > level)
     double = np.count_nonzero(local_max, axis=1) > 1
     if np.any(double):
         flags[double] |= np.uint8(StripeFlag.AMBIGUOUS)
-        border = border | double
 
-    if np.any(border):
+    use3 = border | double
+    if np.any(use3):
         # Three-point Gaussian (log-parabola) on background-subtracted values: unbiased for a
         # Gaussian profile whatever the window, needs only the two neighbours.
-        b = np.flatnonzero(border)
+        b = np.flatnonzero(use3)
         k = hw  # index of the peak pixel inside w
-        a0 = w[b, k - 1]
-        a1 = w[b, k]
-        a2 = w[b, k + 1]
-        good = (a0 > 0) & (a1 > 0) & (a2 > 0) & sym[b, k - 1] & sym[b, k + 1]
+        a0 = w[b, k - 1].astype(np.float64)
+        a1 = w[b, k].astype(np.float64)
+        a2 = w[b, k + 1].astype(np.float64)
+        good = (a0 > 0) & (a1 > 0) & (a2 > 0)
         la0, la1, la2 = (np.log(np.where(good, a, 1.0)) for a in (a0, a1, a2))
         den = la0 - 2 * la1 + la2
         delta = np.where(good & (den < 0), 0.5 * (la0 - la2) / np.where(den < 0, den, -1.0), 0.0)
         pos[b] = np.where(good & (np.abs(delta) <= 1.0), cols[b] + delta, pos[b])
-        flags[b[~double[b]]] |= np.uint8(StripeFlag.BORDER)
+        flags[b[border[b]]] |= np.uint8(StripeFlag.BORDER)
 
     saturated = peak >= sat
     if np.any(saturated):
-        s = np.flatnonzero(saturated)
-        pos[s], width[s] = _saturated_centres(img, lines[s], cols[s], sat)
-        flags[s] |= np.uint8(StripeFlag.SATURATED)
+        s_idx = np.flatnonzero(saturated)
+        pos[s_idx], width[s_idx] = _saturated_centres(img, lines[s_idx], cols[s_idx], sat)
+        flags[s_idx] |= np.uint8(StripeFlag.SATURATED)
     contrast = np.where(ok, contrast, 0.0).astype(np.float32)
-    return _Peaks(
-        lines.astype(np.int64),
+    peaks = _Peaks(
+        lines.astype(np.int64, copy=False),
         pos,
         peak,
         contrast,
         width.astype(np.float32),
         flags,
-        slope.astype(np.float32),
+        slope,
     )
+    return peaks, counts
 
 
 def _saturated_centres(
@@ -418,12 +446,12 @@ def _saturated_centres(
     return cols + centre - mid, width
 
 
-def auto_half_window(img: NDArray, noise: float, step: int = 8) -> int:
+def auto_half_window(img: NDArray, noise: float, step: int = 16) -> int:
     """Noise-optimal centre-of-gravity half-window (about 2.7 sigma) from every ``step``-th line."""
     H = img.shape[0]
     lines = np.arange(0, H, step)
     cols = img[::step].argmax(axis=1)
-    m = _measure(img, lines, cols, 10, float("inf"), noise)
+    m, _ = _measure(img, lines, cols, 10, float("inf"))
     ok = m.contrast > 10.0 * noise
     if np.count_nonzero(ok) < 3:
         return 6
@@ -442,30 +470,25 @@ def _primary_and_secondary(img: NDArray, options: StripeOptions, noise: float, h
 
     lines = np.arange(H)
     cols = img.argmax(axis=1)
-    prim = _measure(img, lines, cols, hw, sat, noise)
-
     # Lines where something else clears the threshold outside the primary's window are searched
     # for further peaks; the common frame (one stripe, dark background) skips this entirely.
-    bg_level = _median(img[:: max(1, H // 48), :: max(1, W // 64)])
+    if options.background_level is not None:
+        bg_level = float(options.background_level)
+    else:
+        bg_level = _median(img[:: max(1, H // 32), :: max(1, W // 32)])
     thr = bg_level + thr_contrast
+    prim, in_win = _measure(img, lines, cols, hw, sat, count_above=thr)
     if img.dtype == np.uint8:
         _, mask = cv2.threshold(img, min(thr, 254.0), 1, cv2.THRESH_BINARY)
     elif img.dtype == np.float32:
         mask = cv2.threshold(img, thr, 1, cv2.THRESH_BINARY)[1].astype(np.uint8)
     else:
         mask = (img > thr).astype(np.uint8)
-    thr_img = thr
     count_all = cv2.reduce(mask, 1, cv2.REDUCE_SUM, dtype=cv2.CV_32S).reshape(-1)
-    off = np.arange(-hw, hw + 1)
-    win = cols[:, None] + off
-    in_win = (
-        mask.reshape(-1).take(lines[:, None] * W + np.clip(win, 0, W - 1))
-        * ((win >= 0) & (win < W))
-    ).sum(axis=1)
     extra = np.flatnonzero(count_all > in_win)
     parts = [prim]
     if extra.size:
-        parts.append(_secondary_peaks(img, extra, cols[extra], hw, sat, noise, thr_img))
+        parts.append(_secondary_peaks(img, extra, cols[extra], hw, sat, thr))
     peaks = _Peaks.concat(parts)
 
     # Contrast thresholds: noise, absolute, and relative to the line's brightest peak.
@@ -485,7 +508,6 @@ def _secondary_peaks(
     primary_cols: NDArray,
     hw: int,
     sat: float,
-    noise: float,
     thr: float,
 ) -> _Peaks:
     """Local maxima above ``thr`` on ``lines``, away from the primary peak's window."""
@@ -500,7 +522,7 @@ def _secondary_peaks(
     r, c = r[far], c[far]
     if r.size == 0:
         return _empty_peaks()
-    return _measure(img, lines[r], c, hw, sat, noise)
+    return _measure(img, lines[r], c, hw, sat)[0]
 
 
 def _empty_peaks() -> _Peaks:
@@ -634,15 +656,14 @@ def _refine_precise(img: NDArray, peaks: _Peaks, sigma: float) -> tuple[NDArray,
     patch = flat.take(rc[:, :, None] * W + cc[:, None, :]).astype(np.float32)  # (n, P, P)
 
     # Kernels along the line evaluated at the fast estimate: (I * g')(pos) = sum I(c) g'(pos - c).
-    ku = _gauss_kernels(delta[:, None] - j[None, :], sigma)
-    ku = tuple(k.astype(np.float32) for k in ku)
-    ku0 = ku[0] / ku[0].sum(axis=1, keepdims=True)
+    g0, g1, g2 = _gauss_kernels(delta[:, None] - j[None, :], sigma)
+    g0 /= g0.sum(axis=1, keepdims=True)
+    ku = np.stack([g0, g1, g2], axis=2).astype(np.float32)  # (n, P, 3)
     kv0, kv1, kv2 = (k.astype(np.float32) for k in _gauss_kernels(-j.astype(np.float64), sigma))
     kv0 = kv0 / kv0.sum()
     # Contract along u (last axis) with the three per-point kernels, then along v.
-    a0 = np.einsum("npq,nq->np", patch, ku0)
-    a1 = np.einsum("npq,nq->np", patch, ku[1])
-    a2 = np.einsum("npq,nq->np", patch, ku[2])
+    a = patch @ ku  # (n, P rows, 3)
+    a0, a1, a2 = a[:, :, 0], a[:, :, 1], a[:, :, 2]
     ru = a1 @ kv0
     ruu = a2 @ kv0
     rv = a0 @ kv1
@@ -652,9 +673,8 @@ def _refine_precise(img: NDArray, peaks: _Peaks, sigma: float) -> tuple[NDArray,
     ru = ru - peaks.slope
 
     # 1-D estimate along the centre row (lines at the image's top and bottom).
-    mid = patch[:, R, :]
-    r1 = (mid * ku[1]).sum(axis=1) - peaks.slope
-    r2 = (mid * ku[2]).sum(axis=1)
+    r1 = a1[:, R] - peaks.slope
+    r2 = a2[:, R]
     with np.errstate(divide="ignore", invalid="ignore"):
         t1 = -r1 / r2
     # 2-D: cross direction = eigenvector of the most negative Hessian eigenvalue.

@@ -1,0 +1,173 @@
+"""Stripe extraction: speed per 1024x768 frame and accuracy against rendered truth.
+
+Prints one table per measurement. Speed is measured on one core (OpenCV limited to one
+thread) against ``frame.max()`` on the same frame in the same run, and against a plain NumPy
+per-line centroid as a baseline. Accuracy is measured on analytic frames
+(:mod:`scanner.scanning.synthetic`) and, when given, on a virtual-cell sweep (``--cell DIR``:
+a folder written by ``simulate_cell`` with ``sweep/`` and ``sweep_stripes.npz``).
+
+    python benchmarks/bench_stripe.py [--cell DIR] [--frames N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from scanner.scanning.stripe import extract_stripe
+from scanner.scanning.synthetic import StripeSegment, render_stripes
+
+SHAPE = (768, 1024)
+
+
+def _best_time(fn, repeat: int = 7, number: int = 20) -> float:
+    best = float("inf")
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        for _ in range(number):
+            fn()
+        best = min(best, (time.perf_counter() - t0) / number)
+    return best
+
+
+def _centroid_baseline(img: np.ndarray) -> np.ndarray:
+    """The textbook per-line centroid over the whole line (no window, no background)."""
+    f = img.astype(np.float32)
+    u = np.arange(img.shape[1], dtype=np.float32)
+    return (f @ u) / np.maximum(f.sum(axis=1), 1e-6)
+
+
+def _frame(seed: int, noise: float = 2.0, sigma: float = 1.5) -> tuple[np.ndarray, tuple]:
+    rng = np.random.default_rng(seed)
+    seg = StripeSegment(
+        (0, SHAPE[0]),
+        (rng.uniform(300, 700), rng.uniform(-0.3, 0.3), rng.uniform(-2e-4, 2e-4)),
+        amplitude=rng.uniform(120, 200),
+        sigma_px=sigma,
+    )
+    img, truth = render_stripes(SHAPE, [seg], noise=noise, background=8.0, seed=seed)
+    return img, truth[0]
+
+
+def speed_table() -> None:
+    cv2.setNumThreads(1)
+    img, _ = _frame(0)
+    t_max = _best_time(lambda: img.max(), number=200)
+    t_base = _best_time(lambda: _centroid_baseline(img))
+    rows = [("frame.max()", t_max), ("NumPy line centroid (baseline)", t_base)]
+    for mode in ("fast", "precise"):
+        rows.append(
+            (
+                f"extract_stripe {mode}",
+                _best_time(lambda m=mode: extract_stripe(img, mode=m, orientation="rows")),
+            )
+        )
+    print("\nSpeed, one 1024x768 8-bit frame in memory, one core (best of 7)")
+    print(f"{'method':34s} {'time/frame':>12s} {'profiles/s':>11s} {'x frame.max()':>14s}")
+    for name, t in rows:
+        print(f"{name:34s} {t * 1e6:10.0f} us {1.0 / t:11.0f} {t / t_max:14.1f}")
+    print(
+        "targets: fast <= 5x frame.max() (several thousand profiles/s); precise >= 1000 profiles/s"
+    )
+
+
+def accuracy_table(seeds: int = 8) -> None:
+    print("\nAccuracy on analytic frames (1024x768, sigma 1.5 px, amplitude 120-200, noise 2 DN)")
+    print(
+        f"{'mode':8s} {'points':>7s} {'RMS px':>8s} {'bias px':>8s} {'border RMS':>11s} {'border bias':>12s} {'target':>7s}"
+    )
+    for mode, target in (("fast", 0.03), ("precise", 0.015)):
+        errs, border = [], []
+        for seed in range(seeds):
+            img, (lines, pos) = _frame(100 + seed)
+            p = extract_stripe(img, mode=mode, orientation="rows")
+            truth = np.full(SHAPE[0], np.nan)
+            truth[lines] = pos
+            e = p.u - truth[p.line]
+            errs.append(e)
+            border.append(e[(p.line < 8) | (p.line >= SHAPE[0] - 8)])
+            # A stripe running along the left border.
+            seg = StripeSegment((0, SHAPE[0]), (1.0 + seed * 0.3, 0.0), amplitude=160, sigma_px=1.5)
+            img2, ((l2, p2),) = render_stripes(SHAPE, [seg], noise=2.0, background=8.0, seed=seed)
+            q = extract_stripe(img2, mode=mode, orientation="rows")
+            t2 = np.full(SHAPE[0], np.nan)
+            t2[l2] = p2
+            border.append(q.u - t2[q.line])
+        e = np.concatenate(errs)
+        b = np.concatenate(border)
+        print(
+            f"{mode:8s} {e.size:7d} {np.sqrt(np.mean(e**2)):8.4f} {np.mean(e):+8.4f} "
+            f"{np.sqrt(np.mean(b**2)):11.4f} {np.mean(b):+12.4f} {target:7.3f}"
+        )
+
+
+def cell_table(cell_dir: Path, frames: int) -> None:
+    from scanner.session import read_session
+    from scanner.virtual_cell.truth import StripeTable
+
+    session = read_session(cell_dir / "sweep")
+    table = StripeTable.load(cell_dir / "sweep_stripes.npz")
+    print(f"\nAccuracy on the virtual cell sweep {cell_dir} ({min(frames, len(session))} frames)")
+    print(
+        f"{'mode':8s} {'matched':>8s} {'missed':>7s} {'extra':>6s} {'RMS px':>8s} {'bias px':>8s} {'p99 |e|':>8s}"
+    )
+    for mode in ("fast", "precise"):
+        errs = []
+        matched = missed = extra = 0
+        for f in session.frames[:frames]:
+            img = session.load_laser_image(f)
+            p = extract_stripe(img, mode=mode, orientation="auto")
+            uv_true, _ = table.of_frame(f.id)
+            if len(uv_true) == 0:
+                extra += len(p)
+                continue
+            # Truth as sub-pixel points along the stripe: compare along the scan line.
+            along = 1 if p.orientation == "rows" else 0
+            line_true = uv_true[:, along]
+            pos_true = uv_true[:, 1 - along]
+            got_line = p.line.astype(float)
+            got_pos = p.u if p.orientation == "rows" else p.v
+            order = np.argsort(line_true)
+            line_true, pos_true = line_true[order], pos_true[order]
+            # For each extracted point, the truth points on its scan line (within 0.5 px).
+            for ln, pos in zip(got_line, got_pos):
+                lo, hi = np.searchsorted(line_true, [ln - 0.5, ln + 0.5])
+                if hi <= lo:
+                    extra += 1
+                    continue
+                cand = pos_true[lo:hi]
+                k = np.argmin(np.abs(cand - pos))
+                if abs(cand[k] - pos) > 3.0:
+                    extra += 1
+                    continue
+                # Interpolate the truth onto the scan line from its neighbours on the curve.
+                errs.append(pos - cand[k])
+                matched += 1
+            missed += max(0, len(np.unique(np.rint(line_true))) - len(np.unique(got_line)))
+        e = np.asarray(errs)
+        if e.size == 0:
+            print(f"{mode:8s} no matches")
+            continue
+        print(
+            f"{mode:8s} {matched:8d} {missed:7d} {extra:6d} {np.sqrt(np.mean(e**2)):8.4f} "
+            f"{np.mean(e):+8.4f} {np.percentile(np.abs(e), 99):8.4f}"
+        )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--cell", type=Path, help="a simulate_cell output folder")
+    parser.add_argument("--frames", type=int, default=40, help="virtual-cell frames to compare")
+    args = parser.parse_args()
+    speed_table()
+    accuracy_table()
+    if args.cell is not None:
+        cell_table(args.cell, args.frames)
+
+
+if __name__ == "__main__":
+    main()
