@@ -328,26 +328,24 @@ def _check_kinds(m: MeasurementSpec, kinds: list[str], where: str) -> None:
 
 def _line_of(text: str, key_path: str) -> int | None:
     """Line of ``key_path`` (``measurements[2].features``) in TOML ``text``: the n-th
-    ``[[array]]`` table, then the first ``key =`` inside it (inline tables included)."""
+    ``[[array]]`` table, then the last key's ``key =`` inside it (inline tables included)."""
     parts = re.findall(r"([A-Za-z_][\w-]*)(?:\[(\d+)\])?", key_path)
     start, end = 0, len(text)
     keys: list[str] = []
     for name, index in parts:
         if index:
-            headers = [
-                m.start() for m in re.finditer(rf"^\s*\[\[\s*{re.escape(name)}\s*\]\]", text, re.M)
-            ]
-            if int(index) < len(headers):
-                start = headers[int(index)]
-                nxt = re.compile(r"^\s*\[", re.M).search(
-                    text, text.index("\n", start) + 1 if "\n" in text[start:] else end
-                )
+            header = re.compile(rf"^[ \t]*\[\[[ \t]*{re.escape(name)}[ \t]*\]\]", re.M)
+            found = [m.start() for m in header.finditer(text)]
+            if int(index) < len(found):
+                start = found[int(index)]
+                after = text.find("\n", start)
+                nxt = re.compile(r"^[ \t]*\[", re.M).search(text, after + 1) if after >= 0 else None
                 end = nxt.start() if nxt else len(text)
                 keys = []
                 continue
         keys.append(name)
     for key in reversed(keys):
-        m = re.compile(rf"(?<![\w.-]){re.escape(key)}\s*=", re.M).search(text, start, end)
+        m = re.compile(rf"(?<![\w.-]){re.escape(key)}[ \t]*=").search(text, start, end)
         if m:
             return text.count("\n", 0, m.start()) + 1
     if start:
