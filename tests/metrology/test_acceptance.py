@@ -1,0 +1,120 @@
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from metrology.acceptance import MPE, load_acceptance_spec, run_acceptance
+from scanner.cli import main
+from scanner.config import CONFIG_DIR, ConfigError
+from tests.metrology.test_measure import SPHERES, paper_scene
+
+SPEC = CONFIG_DIR / "plans" / "acceptance_paper.toml"
+
+
+def by_symbol(result) -> dict[str, list]:
+    out: dict[str, list] = {}
+    for c in result.characteristics:
+        out.setdefault(c.symbol, []).append(c)
+    return out
+
+
+def test_ideal_scan_passes_with_small_errors():
+    rng = np.random.default_rng(0)
+    result = run_acceptance(paper_scene(rng, noise_mm=0.01), SPEC)
+    assert result.passed, result.summary()
+    c = by_symbol(result)
+    assert len(c["PF"]) == 2 and len(c["PS"]) == 2 and len(c["SD"]) == 1 and len(c["F"]) == 1
+    for pf in c["PF"]:
+        # range of Gaussian noise (sigma 10 µm) over ~3000 points after the 0.3 % exclusion
+        assert 0.04 < pf.value_mm < 0.08
+    for ps in c["PS"]:
+        assert abs(ps.value_mm) < 0.002
+    assert abs(c["SD"][0].value_mm) < 0.002
+    assert 0.04 < c["F"][0].value_mm < 0.08
+    assert result.summary().startswith("PASS: 6 passed, 0 failed (PF +")
+
+
+def test_known_errors_are_measured_and_judged():
+    rng = np.random.default_rng(1)
+    moved = (SPHERES[0], SPHERES[1] + [0.0, 0.2, 0.0])  # spacing sqrt(100^2 + 0.2^2)
+    cloud = paper_scene(rng, noise_mm=0.005, centers=moved, diameter_mm=25.46, plate_bump_mm=0.2)
+    result = run_acceptance(cloud, SPEC)
+    c = by_symbol(result)
+    for ps in c["PS"]:
+        assert ps.value_mm == pytest.approx(0.06, abs=0.002)
+        assert ps.row.final_status == "fail"  # MPE 0.05
+    assert c["SD"][0].value_mm == pytest.approx(np.hypot(100.0, 0.2) - 100.0, abs=0.002)
+    assert c["SD"][0].row.final_status == "pass"
+    assert c["F"][0].value_mm > 0.19  # the bump and the noise
+    assert c["F"][0].row.final_status == "fail"
+    assert not result.passed and result.n_failed == 3
+    assert result.worst("PS") == pytest.approx(0.06, abs=0.002)
+
+
+def test_outlier_exclusion_follows_the_fraction():
+    rng = np.random.default_rng(2)
+    cloud = paper_scene(rng)
+    spec = load_acceptance_spec(SPEC)
+    kept = run_acceptance(cloud, spec)
+    none = run_acceptance(cloud, dataclasses.replace(spec, outlier_fraction=0.0))
+    for name in ("sphere_1", "sphere_2", "plate"):
+        n = none.fits[name].n_inliers
+        assert kept.n_excluded[name] == int(np.floor(0.003 * n))
+        assert none.n_excluded[name] == 0
+        assert kept.fits[name].range_mm <= none.fits[name].range_mm
+
+
+def test_a_missing_sphere_fails_the_test_with_a_reason():
+    rng = np.random.default_rng(3)
+    cloud = paper_scene(rng)
+    cloud = cloud[np.linalg.norm(cloud - SPHERES[0], axis=1) > 20]
+    result = run_acceptance(cloud, SPEC)
+    c = by_symbol(result)
+    assert c["PF"][0].row.final_status == "error"
+    assert "too few points" in c["PF"][0].row.note
+    assert c["SD"][0].value_mm is None and c["SD"][0].row.final_status == "error"
+    assert c["PF"][1].passed and c["F"][0].passed
+    assert not result.passed
+    data = json.loads(json.dumps(result.to_json(), allow_nan=False))
+    assert data["values_mm"]["SD"] is None
+    assert data["result"] == "fail"
+
+
+def test_spec_validation(tmp_path: Path):
+    text = SPEC.read_text().replace("sphere_spacing_mm = 0.1", "sphere_spacing_mm = -0.1")
+    bad = tmp_path / "a.toml"
+    bad.write_text(text)
+    with pytest.raises(ConfigError, match=r"line \d+: mpe\.sphere_spacing_mm: expected a positive"):
+        load_acceptance_spec(bad)
+    with pytest.raises(ValueError, match="flatness_mm"):
+        MPE(probing_form_mm=0.1, probing_size_mm=0.1, sphere_spacing_mm=0.1, flatness_mm=0.0)
+    one = tmp_path / "b.toml"
+    start = SPEC.read_text().index('[[spheres]]\nname = "sphere_2"')
+    end = SPEC.read_text().index("[plate]")
+    one.write_text(SPEC.read_text()[:start] + SPEC.read_text()[end:])
+    with pytest.raises(ConfigError, match="spheres: expected 2"):
+        load_acceptance_spec(one)
+
+
+def test_acceptance_command(tmp_path: Path, capsys, monkeypatch):
+    monkeypatch.setenv("SCANNER_RENDERER", "matplotlib")
+    cloud = tmp_path / "scan.npy"
+    np.save(cloud, paper_scene(np.random.default_rng(4), n=6000, diameter_mm=25.5))
+    out = tmp_path / "acc.json"
+    args = ["acceptance", str(cloud), "--spec", "acceptance_paper", "--out", str(out)]
+    assert main(args) == 0
+    printed = capsys.readouterr().out
+    assert "acceptance: FAIL: 4 passed, 2 failed" in printed
+    assert "FAIL: PS sphere_1" in printed
+    data = json.loads(out.read_text())
+    assert data["standard"] == "VDI/VDE 2634 Part 2"
+    assert data["values_mm"]["PS"] == pytest.approx(0.1, abs=0.005)
+    assert out.with_suffix(".html").is_file() and out.with_suffix(".csv").is_file()
+    assert main([*args, "--strict"]) == 1
+    capsys.readouterr()
+    assert main(["acceptance", str(cloud), "--spec", "nope", "--out", str(out)]) == 2
+    assert "config not found" in capsys.readouterr().err
