@@ -19,7 +19,7 @@ import shutil
 import time
 from collections.abc import Sequence
 from concurrent.futures import Executor, ProcessPoolExecutor, ThreadPoolExecutor
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -280,6 +280,32 @@ def _load_chunk(path: Path, key: str) -> dict[str, NDArray] | None:
         return None
 
 
+def _sweep_stripe_options(
+    frames: Sequence[Frame], options: ScanOptions, orientation: str, probes: int = 5
+) -> StripeOptions:
+    """Fix the centre-of-gravity window once per sweep, from the first frames that show a stripe.
+
+    One window for the whole sweep keeps the estimator identical from frame to frame (and saves
+    measuring it on every frame).
+    """
+    import cv2
+
+    from scanner.scanning.stripe import auto_half_window, estimate_noise
+
+    stripe = options.stripe
+    if stripe.half_window_px is not None or not frames:
+        return stripe
+    step = max(1, len(frames) // probes)
+    windows = []
+    for f in frames[::step][:probes]:
+        img = load_gray_image(f.laser_image, laser=True)  # type: ignore[arg-type]
+        work = img if orientation == "rows" else cv2.transpose(img)
+        windows.append(auto_half_window(work, estimate_noise(work)))
+    hw = int(np.median(windows))
+    log.info("centre-of-gravity half-window %d px (from %d frames)", hw, len(windows))
+    return replace(stripe, half_window_px=hw)
+
+
 def _resolve_orientation(options: ScanOptions, calibration: Calibration) -> str:
     if options.orientation == "calibration":
         return orientation_from_calibration(calibration)
@@ -304,6 +330,7 @@ def scan_profiles(
     """
     work_dir.mkdir(parents=True, exist_ok=True)
     orientation = _resolve_orientation(options, calibration)
+    stripe_options = _sweep_stripe_options(frames, options, orientation)
     n = len(frames)
     size = options.chunk_frames
     jobs: list[_ChunkJob] = []
@@ -325,7 +352,7 @@ def scan_profiles(
             )
             for i in range(start, min(n, start + size))
         )
-        jobs.append(_ChunkJob(c, str(path), fjobs, options.mode, orientation, options.stripe, key))
+        jobs.append(_ChunkJob(c, str(path), fjobs, options.mode, orientation, stripe_options, key))
     resumed = len(loaded)
     if resumed:
         log.info(

@@ -14,6 +14,7 @@ error far below the stripe's own (checked in the tests) at a fraction of the tim
 
 from __future__ import annotations
 
+import itertools
 import logging
 
 import numpy as np
@@ -102,16 +103,22 @@ class Triangulator:
         if self._table is None:
             return self.camera.normalize(uv)
         t = self._table
+        nv, nu = t.shape[:2]
         h = self.grid_step_px
-        fu = (uv[:, 0] - self._u0) / h
-        fv = (uv[:, 1] - self._v0) / h
-        iu = np.clip(np.floor(fu).astype(np.int64), 0, t.shape[1] - 2)
-        iv = np.clip(np.floor(fv).astype(np.int64), 0, t.shape[0] - 2)
+        fu = (uv[:, 0] - self._u0) * (1.0 / h)
+        fv = (uv[:, 1] - self._v0) * (1.0 / h)
+        iu = np.minimum(np.maximum(fu.astype(np.int64), 0), nu - 2)
+        iv = np.minimum(np.maximum(fv.astype(np.int64), 0), nv - 2)
         au = (fu - iu)[:, None]
         av = (fv - iv)[:, None]
-        top = t[iv, iu] * (1 - au) + t[iv, iu + 1] * au
-        bottom = t[iv + 1, iu] * (1 - au) + t[iv + 1, iu + 1] * au
-        return top * (1 - av) + bottom * av
+        flat = t.reshape(-1, 2)
+        k = iv * nu + iu
+        top = flat[k]
+        top += (flat[k + 1] - top) * au
+        bottom = flat[k + nu]
+        bottom += (flat[k + nu + 1] - bottom) * au
+        top += (bottom - top) * av
+        return top
 
     def points_cam(self, uv: NDArray) -> NDArray:
         """Light-plane points ``(N, 3)`` in the camera frame, mm (NaN where a ray misses)."""
@@ -145,6 +152,21 @@ class Triangulator:
             )
         base_from_cam = poses @ self.flange_from_cam
         p_cam = self.points_cam(uv)
-        rot = base_from_cam[:, :3, :3]
-        trans = base_from_cam[:, :3, 3]
-        return np.einsum("nij,nj->ni", rot[idx], p_cam) + trans[idx]
+        out = np.empty_like(p_cam)
+        if idx.size == 0:
+            return out
+        # Points come frame by frame: one small matrix product per run of equal indices.
+        order = None
+        if np.any(idx[1:] < idx[:-1]):
+            order = np.argsort(idx, kind="stable")
+            idx, p_cam = idx[order], p_cam[order]
+        starts = np.concatenate([[0], np.flatnonzero(idx[1:] != idx[:-1]) + 1, [idx.size]])
+        for a, b in itertools.pairwise(starts.tolist()):
+            m = base_from_cam[idx[a]]
+            np.matmul(p_cam[a:b], m[:3, :3].T, out=out[a:b])
+            out[a:b] += m[:3, 3]
+        if order is not None:
+            unsorted = np.empty_like(out)
+            unsorted[order] = out
+            out = unsorted
+        return out
