@@ -22,3 +22,33 @@ def real_data() -> Path:
     if not path.is_dir():
         pytest.skip(f"real captures not available here ({path} is absent)")
     return path
+
+
+@pytest.fixture(scope="session")
+def simulated_cells(tmp_path_factory):
+    """Render virtual-cell sessions once per test run and share them between test modules.
+
+    ``simulated_cells(cell, sessions=("check",))`` returns the folder holding the requested
+    sessions and ``truth.json``; repeated requests reuse what was rendered.
+    """
+    from scanner.virtual_cell.simulate import simulate_cell
+
+    cache: dict[tuple, Path] = {}
+
+    def get(
+        cell: str,
+        sessions: tuple[str, ...] = ("calibration", "check", "sweep"),
+        seed: int = 0,
+        **kwargs,
+    ) -> Path:
+        key = (cell, tuple(sorted(sessions)), seed, tuple(sorted(kwargs.items())))
+        # A full simulation serves any subset of its sessions.
+        for (c, s, sd, kw), path in cache.items():
+            if c == cell and sd == seed and kw == key[3] and set(sessions) <= set(s):
+                return path
+        path = tmp_path_factory.mktemp(f"cell-{cell}-{seed}")
+        simulate_cell(cell, path, seed=seed, sessions=tuple(sessions), **kwargs)
+        cache[key] = path
+        return path
+
+    return get
