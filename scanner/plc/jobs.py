@@ -184,7 +184,7 @@ class VirtualCellSource:
 
     def acquire(self, kind: str, ctx: JobContext, recipe: Recipe | None = None) -> Path:
         try:
-            from scanner.virtual_cell import simulate_cell
+            from scanner.virtual_cell.simulate import simulate_cell
         except ImportError as exc:
             raise JobError(ErrorCode.INTERNAL, f"virtual cell not available: {exc}") from None
         cell = recipe.cell if recipe is not None and recipe.cell else self.cell

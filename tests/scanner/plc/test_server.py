@@ -166,3 +166,14 @@ def test_a_busy_client_is_not_idle(tmp_path: Path):
             sock.sendall(adu(i, read_pdu(100, 1)))
             assert recv_adu(sock)[0] == i
             time.sleep(0.2)
+
+
+def test_input_registers_and_read_write_multiple_serve_the_same_map(service: Running):
+    with connect(service.port) as sock:
+        sock.sendall(adu(1, struct.pack(">BHH", 4, 113, 2)))
+        assert recv_adu(sock) == (1, 1, struct.pack(">BB2H", 4, 4, *PROBE))
+        fc23 = struct.pack(">BHHHHB1H", 23, 113, 2, 7, 1, 2, 77)
+        sock.sendall(adu(2, fc23))
+        assert recv_adu(sock) == (2, 1, struct.pack(">BB2H", 23, 4, *PROBE))
+        sock.sendall(adu(3, read_pdu(7, 1)))
+        assert recv_adu(sock)[2] == _read_reply([77])
