@@ -418,7 +418,13 @@ def _measure(
 def _saturated_centres(
     img: NDArray, lines: NDArray, cols: NDArray, sat: float, reach: int = 40
 ) -> tuple[NDArray, NDArray]:
-    """Centre of the saturated run through ``cols``, refined by symmetric-level edge crossings."""
+    """Centre of the saturated run through ``cols`` and the run's length.
+
+    The run's midpoint is refined with the unsaturated flanks: the logarithm of a Gaussian is a
+    parabola, fitted by weighted least squares (weights ``w**2``, Caruana's weighting) to the
+    unsaturated pixels above 5 % of the saturation contrast on both sides, and its vertex taken.
+    Where that fit is not possible (one flank missing, a flat profile), the midpoint stays.
+    """
     W = img.shape[1]
     off = np.arange(-reach, reach + 1)
     c = cols[:, None] + off
@@ -432,18 +438,50 @@ def _saturated_centres(
     n_left = np.cumprod(on[:, mid::-1], axis=1).sum(axis=1) - 1
     a = mid - n_left  # first saturated index
     b = mid + n_right  # last saturated index
-    rows = np.arange(len(cols))
-    va = vals[rows, np.clip(a - 1, 0, 2 * reach)]  # outside neighbours (may be -inf at border)
-    vb = vals[rows, np.clip(b + 1, 0, 2 * reach)]
-    level = np.maximum(va, vb)  # a level both flanks cross
-    with np.errstate(invalid="ignore", divide="ignore"):
-        xl = np.where(va >= level, a - 1.0, a - 1.0 + (level - va) / (sat - va))
-        xr = np.where(vb >= level, b + 1.0, b + 1.0 - (level - vb) / (sat - vb))
-    centre = 0.5 * (xl + xr)
-    plain = 0.5 * (a + b)
-    centre = np.where(np.isfinite(centre) & np.isfinite(level), centre, plain)
-    width = (b - a + 1).astype(np.float64)
-    return cols + centre - mid, width
+    centre = 0.5 * (a + b)
+    run = (b - a + 1).astype(np.float64)
+
+    # Background: the lowest finite values of the window's two ends.
+    finite = np.where(np.isfinite(vals), vals, np.nan)
+    with np.errstate(all="ignore"):
+        bg = np.nanmin(
+            np.column_stack(
+                [np.nanmedian(finite[:, :6], axis=1), np.nanmedian(finite[:, -6:], axis=1)]
+            ),
+            axis=1,
+        )
+    bg = np.where(np.isfinite(bg), bg, 0.0)
+    w = vals - bg[:, None]
+    x = off[None, :].astype(np.float64)
+    # Flank pixels: unsaturated, inside, above 5 % of the contrast, within 3 run-lengths + 4 px.
+    span = (3 * run + 4)[:, None]
+    dist = np.abs(x - (centre - mid)[:, None])
+    use = np.isfinite(vals) & ~on & (w > 0.05 * (sat - bg)[:, None]) & (dist <= span)
+    left_n = np.count_nonzero(use & (x < (a - mid)[:, None]), axis=1)
+    right_n = np.count_nonzero(use & (x > (b - mid)[:, None]), axis=1)
+    wt = np.where(use, np.maximum(w, 1e-9) ** 2, 0.0)
+    y = np.log(np.maximum(w, 1e-9))
+    xc = x - (centre - mid)[:, None]  # centred for conditioning
+    m = np.empty((len(cols), 3, 3))
+    r = np.empty((len(cols), 3))
+    powers = [np.ones_like(xc), xc, xc * xc, xc**3, xc**4]
+    for i in range(3):
+        r[:, i] = (wt * powers[i] * y).sum(axis=1)
+        for j in range(3):
+            m[:, i, j] = (wt * powers[i + j]).sum(axis=1)
+    fit_ok = (left_n >= 1) & (right_n >= 1) & (left_n + right_n >= 3)
+    refined = centre.copy()
+    if np.any(fit_ok):
+        k = np.flatnonzero(fit_ok)
+        det = np.linalg.det(m[k])
+        good = np.abs(det) > 1e-12
+        coef = np.zeros((k.size, 3))
+        coef[good] = np.linalg.solve(m[k][good], r[k][good][:, :, None])[:, :, 0]
+        c2 = coef[:, 2]
+        vertex = np.where(c2 < 0, -coef[:, 1] / (2 * np.where(c2 < 0, c2, -1.0)), np.nan)
+        plausible = good & np.isfinite(vertex) & (np.abs(vertex) <= 0.5 * run[k] + 0.5)
+        refined[k] = np.where(plausible, centre[k] + vertex, centre[k])
+    return cols + refined - mid, run
 
 
 def auto_half_window(img: NDArray, noise: float, step: int = 16) -> int:
