@@ -15,6 +15,7 @@ Jobs run on a worker thread. Cancellation is cooperative: the service sets
 from __future__ import annotations
 
 import datetime as dt
+import importlib
 import json
 import logging
 import os
@@ -258,6 +259,16 @@ def _call(func: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
         raise JobError(ErrorCode.BAD_INPUT, " ".join(str(exc).split())) from exc
 
 
+def _stage(module: str, name: str) -> Callable[..., Any]:
+    """A pipeline function, imported now; a missing stage is a recorded job error."""
+    try:
+        return getattr(importlib.import_module(module), name)
+    except (ImportError, AttributeError) as exc:
+        raise JobError(
+            ErrorCode.INTERNAL, f"pipeline stage {module}.{name} not available: {exc}"
+        ) from None
+
+
 def _mm_to_um(value: Any) -> float | None:
     return None if value is None else float(value) * 1000.0
 
@@ -298,8 +309,7 @@ class PipelineJobs:
         calibration = self._require_calibration()
         ctx.session_path = self.source.acquire("check", ctx)
         ctx.check_cancelled()
-        from metrology.ef_check import run_ef_check
-
+        run_ef_check = _stage("metrology.ef_check", "run_ef_check")
         out = ctx.work_dir / "ef_check.json"
         result = _call(run_ef_check, ctx.session_path, calibration, out)
         results = (
@@ -334,13 +344,11 @@ class PipelineJobs:
         plan = _call(resolve_config, recipe.plan, "plans")
         ctx.session_path = self.source.acquire("sweep", ctx, recipe)
         ctx.check_cancelled()
-        from scanner.scanning.pipeline import scan_session
-
+        scan_session = _stage("scanner.scanning.pipeline", "scan_session")
         cloud = ctx.work_dir / "cloud.ply"
         _call(scan_session, ctx.session_path, calibration, out_path=cloud, progress=False)
         ctx.check_cancelled()
-        from metrology.measure import measure_cloud
-
+        measure_cloud = _stage("metrology.measure", "measure_cloud")
         report = _call(measure_cloud, cloud, plan)
         report_path = ctx.work_dir / "measurement.json"
         write_json_atomic(report_path, report.to_json())
@@ -363,7 +371,7 @@ class PipelineJobs:
         """
         ctx.session_path = self.source.acquire("calibration", ctx)
         ctx.check_cancelled()
-        from calibration.pipeline import calibrate_session
+        calibrate_session = _stage("calibration.pipeline", "calibrate_session")
         from scanner.calibration_file import write_calibration
         from scanner.session import read_session
 
