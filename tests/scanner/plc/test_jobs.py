@@ -5,6 +5,7 @@ import json
 import os
 import threading
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -116,3 +117,79 @@ def test_calibration_gate_judges_the_quality_record():
     assert plane_um == pytest.approx(80.0)
     passed, reason, _ = calibration_gate({"intrinsics": {"rms_px": 0.2}}, gate)
     assert not passed and "missing" in reason
+
+
+def _fake_pipeline(monkeypatch: pytest.MonkeyPatch, quality: dict, rows: list) -> None:
+    import scanner.calibration_file
+    import scanner.plc.jobs as jobs_module
+    import scanner.session
+
+    def write_calibration(path: Path, calibration: object) -> None:
+        Path(path).write_text("new", "utf-8")
+
+    def scan_session(session: Path, calibration: Path, out_path: Path, progress: bool) -> None:
+        Path(out_path).write_text("ply", "utf-8")
+
+    report = SimpleNamespace(rows=rows, passed=True, to_json=lambda: {}, summary=lambda: "PASS")
+    stages = {
+        "calibrate_session": lambda session, progress: SimpleNamespace(
+            calibration=SimpleNamespace(quality=quality)
+        ),
+        "scan_session": scan_session,
+        "measure_cloud": lambda cloud, plan: report,
+    }
+    monkeypatch.setattr(jobs_module, "_stage", lambda module, name: stages[name])
+    monkeypatch.setattr(scanner.calibration_file, "write_calibration", write_calibration)
+    monkeypatch.setattr(scanner.session, "read_session", lambda path: path)
+
+
+GOOD = {"intrinsics": {"rms_px": 0.2}, "light_plane": {"rms_mm": 0.01}, "hand_eye": {"rms_px": 0.3}}
+
+
+@pytest.mark.parametrize("light_plane_mm", [0.01, 0.5])
+def test_full_calibration_replaces_the_current_one_only_when_it_passes(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, light_plane_mm: float
+):
+    quality = {**GOOD, "light_plane": {"rms_mm": light_plane_mm}}
+    _fake_pipeline(monkeypatch, quality, [])
+    current = tmp_path / "cal" / "calibration.json"
+    current.parent.mkdir()
+    current.write_text("old", "utf-8")
+    _session(tmp_path / "drop", "s1", "calibration", 1000.0)
+    config = PlcConfig(storage=StorageConfig(calibration=str(current)))
+    jobs = PipelineJobs(config, source=FolderSource(tmp_path / "drop"))
+    ctx = _ctx(tmp_path, config)
+    ctx.work_dir.mkdir()
+    outcome = jobs.full_calibration(ctx)
+    assert outcome.results_um[0] == pytest.approx(light_plane_mm * 1000)
+    kept = sorted(current.parent.glob("calibration-*.json"))
+    if light_plane_mm < 0.1:
+        assert outcome.passed and outcome.error == ErrorCode.NONE
+        assert current.read_text("utf-8") == "new"
+        assert [k.read_text("utf-8") for k in kept] == ["old"]
+    else:
+        assert not outcome.passed and outcome.error == ErrorCode.QUALITY_GATE
+        assert "light-plane RMS" in outcome.message
+        assert current.read_text("utf-8") == "old" and kept == []
+
+
+def test_scan_job_reports_the_plans_first_figures_in_micrometres(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+):
+    rows = [SimpleNamespace(actual=25.0123), SimpleNamespace(actual=None)]
+    _fake_pipeline(monkeypatch, GOOD, rows)
+    current = tmp_path / "calibration.json"
+    current.write_text("{}", "utf-8")
+    _session(tmp_path / "drop", "s1", "sweep", 1000.0)
+    config = PlcConfig(
+        storage=StorageConfig(calibration=str(current)),
+        recipes=[Recipe(number=3, name="r", plan="modern_sweep")],
+    )
+    jobs = PipelineJobs(config, source=FolderSource(tmp_path / "drop"))
+    ctx = _ctx(tmp_path, config, parameter=3)
+    ctx.work_dir.mkdir()
+    outcome = jobs.scan(ctx)
+    assert outcome.passed
+    assert outcome.results_um == (pytest.approx(25012.3), None, None)
+    assert ctx.session_path == tmp_path / "drop" / "s1"
+    assert outcome.report_path is not None and outcome.report_path.is_file()
