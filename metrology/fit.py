@@ -66,6 +66,9 @@ log = logging.getLogger(__name__)
 RANSAC_SUBSAMPLE = 20_000
 #: Least squares converges on at most this many points before the final pass on all of them.
 LSQ_SUBSAMPLE = 50_000
+#: After RANSAC, least squares and the inlier set are alternated until the set is stable, at
+#: most this many times.
+MAX_ROUNDS = 6
 #: Relative size of the smallest singular value below which a point set counts as degenerate.
 DEGENERACY_RATIO = 1e-6
 
@@ -410,6 +413,34 @@ def _cov(jac: NDArray, res: NDArray) -> NDArray:
         return np.full((p, p), np.nan)
 
 
+def _gauss_newton_polish(
+    fun: Callable[[NDArray, NDArray], NDArray],
+    jac: Callable[[NDArray, NDArray], NDArray],
+    x: NDArray,
+    pts: NDArray,
+    max_steps: int = 3,
+) -> NDArray | None:
+    """Gauss-Newton steps on all points from a nearly converged ``x``; None if a step fails
+    to lower the cost (the caller then runs the full least squares)."""
+    r = fun(x, pts)
+    cost = float(r @ r)
+    for _ in range(max_steps):
+        j = jac(x, pts)
+        try:
+            step = np.linalg.solve(j.T @ j, -(j.T @ r))
+        except np.linalg.LinAlgError:
+            return None
+        x_new = x + step
+        r_new = fun(x_new, pts)
+        cost_new = float(r_new @ r_new)
+        if not math.isfinite(cost_new) or cost_new > cost * (1 + 1e-9) + 1e-24 * len(pts):
+            return None
+        x, r, cost = x_new, r_new, cost_new
+        if np.linalg.norm(step) <= 1e-12 * (1.0 + np.linalg.norm(x)):
+            break
+    return x
+
+
 def _lsq(
     fun: Callable[[NDArray, NDArray], NDArray],
     jac: Callable[[NDArray, NDArray], NDArray],
@@ -417,14 +448,22 @@ def _lsq(
     pts: NDArray,
     rng: np.random.Generator,
 ) -> NDArray:
-    """Solve on a subsample first when the cloud is large, then on all points."""
+    """Minimise ``sum fun(x, pts)^2`` with :func:`scipy.optimize.least_squares`.
+
+    A cloud of more than :data:`LSQ_SUBSAMPLE` points is solved on a random subsample first;
+    from there (within about ``sigma / sqrt(LSQ_SUBSAMPLE)`` of the optimum) Gauss-Newton steps
+    on all points converge quadratically, at a fraction of the cost of a full solver run. If a
+    step does not lower the cost, ``least_squares`` runs on all points instead.
+    """
     x = np.asarray(x0, dtype=np.float64)
     if len(pts) > LSQ_SUBSAMPLE:
         sub = pts[_subsample(len(pts), LSQ_SUBSAMPLE, rng)]
         x = least_squares(fun, x, jac=jac, args=(sub,), method="lm", xtol=1e-12, ftol=1e-12).x
-    # From the subsample's solution a step or two converge; ftol 1e-10 leaves the parameters
-    # within 1e-5 of their standard deviation from the optimum.
-    sol = least_squares(fun, x, jac=jac, args=(pts,), method="lm", xtol=1e-12, ftol=1e-10)
+        polished = _gauss_newton_polish(fun, jac, x, pts)
+        if polished is not None:
+            return polished
+        log.debug("Gauss-Newton polish did not converge; full least squares")
+    sol = least_squares(fun, x, jac=jac, args=(pts,), method="lm", xtol=1e-13, ftol=1e-12)
     log.debug("least squares on %d points: %d evaluations", len(pts), sol.nfev)
     return sol.x
 
@@ -704,7 +743,7 @@ def fit_sphere(
         what = {0: "coincident", 1: "collinear", 2: "coplanar"}[rank]
         return SphereFit(reason=f"degenerate: the points are {what}, a sphere is not determined")
     x = None
-    for _ in range(3 if threshold_mm is not None else 1):
+    for rnd in range(MAX_ROUNDS if threshold_mm is not None else 1):
         inl = _take(pts, mask)
         init = (
             (x[:3], x[3])
@@ -718,8 +757,8 @@ def fit_sphere(
         if threshold_mm is None:
             break
         new = np.abs(_sphere_fun(x, pts)) < threshold_mm
-        if np.array_equal(new, mask) or np.count_nonzero(new) < 5:
-            break
+        if np.array_equal(new, mask) or np.count_nonzero(new) < 5 or rnd == MAX_ROUNDS - 1:
+            break  # (on the last round keep the mask the parameters belong to)
         mask = new
     inl = _take(pts, mask)
     c, r = x[:3], float(abs(x[3]))
@@ -957,7 +996,7 @@ def fit_cylinder(
     axis = (a0 + best_x[0] * u + best_x[1] * v) / np.linalg.norm(a0 + best_x[0] * u + best_x[1] * v)
     point = c0 + best_x[2] * u + best_x[3] * v
     radius = float(best_x[4])
-    for _ in range(3 if threshold_mm is not None else 1):
+    for rnd in range(MAX_ROUNDS if threshold_mm is not None else 1):
         inl = _take(pts, mask)
         # Re-centre the parameterisation on the current axis (tilts and shifts start at zero).
         centroid = inl.mean(axis=0)
@@ -973,8 +1012,8 @@ def fit_cylinder(
             break
         q = pts - point
         new = np.abs(_rownorm(q - np.outer(q @ axis, axis)) - radius) < threshold_mm
-        if np.array_equal(new, mask) or np.count_nonzero(new) < 6:
-            break
+        if np.array_equal(new, mask) or np.count_nonzero(new) < 6 or rnd == MAX_ROUNDS - 1:
+            break  # (on the last round keep the mask the parameters belong to)
         mask = new
     inl = _take(pts, mask)
     extent = _extent(inl)
@@ -1121,7 +1160,7 @@ def fit_circle(
     cx, cy, r0, _ = _circle_scores((x @ u)[:, None], (x @ v)[:, None])
     x_init = np.r_[0.0, 0.0, c + cx[0] * u + cy[0] * v, r0[0]]
     sol = None
-    for _ in range(3 if threshold_mm is not None else 1):
+    for rnd in range(MAX_ROUNDS if threshold_mm is not None else 1):
         fun, jac = _circle_fun_factory(n0, u, v)
         sol = _lsq(fun, jac, x_init, inl, rng)
         m = n0 + sol[0] * u + sol[1] * v
@@ -1131,8 +1170,8 @@ def fit_circle(
         if threshold_mm is None:
             break
         new = _circle_distance(pts, sol[2:5], n0, abs(sol[5])) < threshold_mm
-        if np.array_equal(new, mask) or np.count_nonzero(new) < 4:
-            break
+        if np.array_equal(new, mask) or np.count_nonzero(new) < 4 or rnd == MAX_ROUNDS - 1:
+            break  # (on the last round keep the mask the parameters belong to)
         mask = new
         inl = _take(pts, mask)
     inl = _take(pts, mask)
