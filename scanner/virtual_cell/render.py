@@ -158,21 +158,6 @@ def ray_map(camera: CameraConfig) -> NDArray:
     return _ray_map_cached(key)
 
 
-def _interp_rays(rmap: NDArray, u: NDArray, v: NDArray) -> NDArray:
-    """Bilinear interpolation of the padded ray map at pixels ``(u, v)`` -> ``(N, 2)``."""
-    fu, fv = u + 1.0, v + 1.0
-    j = np.clip(np.floor(fu).astype(np.intp), 0, rmap.shape[1] - 2)
-    i = np.clip(np.floor(fv).astype(np.intp), 0, rmap.shape[0] - 2)
-    a = (fu - j)[:, None]
-    b = (fv - i)[:, None]
-    return (
-        rmap[i, j] * (1 - a) * (1 - b)
-        + rmap[i, j + 1] * a * (1 - b)
-        + rmap[i + 1, j] * (1 - a) * b
-        + rmap[i + 1, j + 1] * a * b
-    )
-
-
 def _sample_offsets(n: int) -> NDArray:
     """``(n*n, 2)`` offsets in [-0.5, 0.5): stratified in 2-D and n-rooks on each axis."""
     a, b = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
@@ -196,41 +181,55 @@ def _shade(
     n = len(xy)
     rot = scene.world_from_cam[:3, :3]
     origin = scene.world_from_cam[:3, 3]
-    dirs = np.column_stack([xy, np.ones(n)]) @ rot.T
+    dirs = np.empty((n, 3))
+    for k in range(3):
+        dirs[:, k] = xy[:, 0] * rot[k, 0] + xy[:, 1] * rot[k, 1] + rot[k, 2]
     t, idx = first_hits(scene.surfaces, origin, dirs)
     hit = idx >= 0
-    amb = np.zeros(n)
+    t = np.where(hit, t, 0.0)
+    albedo = np.zeros(n)
+    edge = np.full(n, np.inf)
+    for k, surf in enumerate(scene.surfaces):
+        sel = np.flatnonzero(idx == k)
+        if not len(sel):
+            continue
+        if surf.textured:
+            albedo[sel], edge[sel] = surf.albedo(origin + dirs[sel] * t[sel, None])
+        else:
+            albedo[sel] = surf.albedo_value
+    rel = albedo / scene.paper_albedo
+    amb = rel * ambient
     las = np.zeros(n)
     need = np.zeros(n, dtype=bool)
-    if not np.any(hit):
-        return amb, las, idx, need
-    h = np.flatnonzero(hit)
-    d_h = dirs[h]
-    p = origin + d_h * t[h, None]
-    normals = np.empty((len(h), 3))
-    albedo = np.empty(len(h))
-    edge = np.empty(len(h))
-    for k in np.unique(idx[h]):
-        sel = idx[h] == k
-        s = scene.surfaces[k]
-        normals[sel] = s.normal(p[sel])
-        albedo[sel], edge[sel] = s.albedo(p[sel])
-    dist = np.linalg.norm(d_h, axis=1)
-    cos_view = np.abs(np.einsum("ij,ij->i", normals, d_h)) / dist
-    footprint = t[h] * dist / focal_px / np.maximum(cos_view, 0.1)
-    rel = albedo / scene.paper_albedo
-    amb[h] = rel * ambient
-    need_h = edge < footprint
+    # Size of one pixel on a surface seen face-on; grazing views stretch it up to 10 times.
+    px_mm = t * np.sqrt(np.einsum("ij,ij->i", dirs, dirs)) / focal_px
+    cand = hit & (edge < 10.0 * px_mm)
+    f = None
     if laser is not None:
-        f = p @ laser.normal + laser.d
+        band_mm = _BAND_SIGMAS * laser.sigma_mm
+        f = (laser.normal @ origin + laser.d) + t * (dirs @ laser.normal)
+        cand |= hit & (np.abs(f) < band_mm + 10.0 * px_mm)
+    c = np.flatnonzero(cand)
+    if not len(c):
+        return amb, las, idx, need
+    d_c = dirs[c]
+    p = origin + d_c * t[c, None]
+    normals = np.empty((len(c), 3))
+    for k in np.unique(idx[c]):
+        sel = idx[c] == k
+        normals[sel] = scene.surfaces[k].normal(p[sel])
+    dist = np.linalg.norm(d_c, axis=1)
+    cos_view = np.abs(np.einsum("ij,ij->i", normals, d_c)) / dist
+    footprint = t[c] * dist / focal_px / np.maximum(cos_view, 0.1)
+    need_c = edge[c] < footprint
+    if laser is not None and f is not None:
+        f_c = f[c]
         if laser.width_model == "surface":
             sin_cut = np.sqrt(np.clip(1 - (normals @ laser.normal) ** 2, 1e-6, None))
-            s_mm = f / sin_cut
+            s_mm = f_c / sin_cut
         else:
-            s_mm = f
-        band_mm = _BAND_SIGMAS * laser.sigma_mm
-        near = np.abs(s_mm) < band_mm + footprint
-        need_h |= near
+            s_mm = f_c
+        need_c |= np.abs(s_mm) < band_mm + footprint
         b = np.flatnonzero(np.abs(s_mm) < band_mm)
         if len(b):
             pb = p[b]
@@ -239,10 +238,10 @@ def _shade(
             cos_in = np.abs(np.einsum("ij,ij->i", normals[b], to_p)) / r
             lit = ~segment_blocked(scene.surfaces, laser.origin, pb)
             profile = np.exp(-0.5 * (s_mm[b] / laser.sigma_mm) ** 2)
-            las[h[b]] = (
-                laser.power * rel[b] * cos_in * (laser.reference_distance_mm / r) * profile * lit
+            las[c[b]] = (
+                laser.power * rel[c[b]] * cos_in * (laser.reference_distance_mm / r) * profile * lit
             )
-    need[h] = need_h
+    need[c] = need_c
     return amb, las, idx, need
 
 
@@ -295,11 +294,17 @@ def render_radiance(
         per_chunk = max(1, _CHUNK // len(offsets))
         for s in range(0, len(todo), per_chunk):
             pix = todo[s : s + per_chunk]
-            u = (pix % w).astype(np.float64)
-            v = (pix // w).astype(np.float64)
-            su = (u[:, None] + offsets[None, :, 0]).ravel()
-            sv = (v[:, None] + offsets[None, :, 1]).ravel()
-            xy = _interp_rays(rmap, su, sv)
+            u = pix % w + 1
+            v = pix // w + 1
+            centre = rmap[v, u]
+            ju = (rmap[v, u + 1] - rmap[v, u - 1]) / 2
+            jv = (rmap[v + 1, u] - rmap[v - 1, u]) / 2
+            # Local affine model of the lens over one pixel (its curvature is negligible there).
+            xy = (
+                centre[:, None, :]
+                + ju[:, None, :] * offsets[None, :, :1]
+                + jv[:, None, :] * offsets[None, :, 1:]
+            ).reshape(-1, 2)
             a, l_, _, _ = _shade(scene, laser, xy, ambient, focal)
             amb[pix] = a.reshape(len(pix), -1).mean(axis=1)
             las[pix] = l_.reshape(len(pix), -1).mean(axis=1)
@@ -363,7 +368,9 @@ def stripe_truth(
     # Sampling step from the distance of the camera to the laser-lit region.
     depth = max(abs(laser.d + laser.normal @ origin), 50.0) * 3
     step_mm = step_px * depth / max(camera.fx, camera.fy)
-    pts, sid = section_points(scene.surfaces, laser.normal, laser.d, step_mm)
+    pts, sid = section_points(
+        scene.surfaces, laser.normal, laser.d, step_mm, clip_center=origin, clip_radius=4 * depth
+    )
     ids = tuple(s.id for s in scene.surfaces)
     empty = StripeTruth(np.zeros((0, 2)), np.zeros(0, dtype=np.int32), np.zeros((0, 3)), ids)
     if not len(pts):

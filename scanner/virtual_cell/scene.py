@@ -164,13 +164,15 @@ class Surface:
 
     id: str = ""
     albedo_value: float = 0.5
+    textured = False
+    """True when :meth:`albedo` varies over the surface (else ``albedo_value`` everywhere)."""
 
     def intersect(self, origin: NDArray, dirs: NDArray) -> NDArray:
         """Smallest positive ray parameter ``t`` (``origin + t * dirs``), inf where missed.
 
         Parameters
         ----------
-        origin : ndarray, shape (3,) or (N, 3)
+        origin : ndarray, shape (3,)
         dirs : ndarray, shape (N, 3)
             Ray directions (any length; ``t`` is in units of their length).
         """
@@ -185,14 +187,27 @@ class Surface:
         n = len(points)
         return np.full(n, self.albedo_value), np.full(n, _FAR)
 
-    def section(self, normal: NDArray, d: float, step_mm: float) -> NDArray:
-        """Points ``(M, 3)`` sampled every ``step_mm`` on this surface's cut by a plane."""
+    def section(
+        self,
+        normal: NDArray,
+        d: float,
+        step_mm: float,
+        clip_center: NDArray | None = None,
+        clip_radius: float = np.inf,
+    ) -> NDArray:
+        """Points ``(M, 3)`` sampled every ``step_mm`` on this surface's cut by a plane.
+
+        Unbounded surfaces are cut only within ``clip_radius`` of ``clip_center``.
+        """
         raise NotImplementedError
 
 
-def _as_origins(origin: NDArray, n: int) -> NDArray:
-    o = np.asarray(origin, dtype=np.float64)
-    return np.broadcast_to(o, (n, 3)) if o.ndim == 1 else o
+def _rotate_rows(points: NDArray, rot: NDArray) -> NDArray:
+    """``points @ rot.T`` for ``(N, 3)`` points, without a slow BLAS call on a thin matrix."""
+    out = np.empty_like(points)
+    for k in range(3):
+        out[:, k] = points @ rot[k]
+    return out
 
 
 @dataclass
@@ -217,12 +232,13 @@ class PlaneSurface(Surface):
         self._n = m[:3, 2]
         if self.printed is not None and self.bounds_mm is None:
             self.bounds_mm = self.printed.card_bounds_mm()
+        self.textured = self.printed is not None
 
     def local(self, points: NDArray) -> NDArray:
-        return (points - self._p0) @ self._rot
+        return _rotate_rows(points - self._p0, self._rot.T)
 
     def intersect(self, origin: NDArray, dirs: NDArray) -> NDArray:
-        o = _as_origins(origin, len(dirs))
+        o = np.asarray(origin, dtype=np.float64)
         denom = dirs @ self._n
         num = (self._p0 - o) @ self._n
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -231,10 +247,12 @@ class PlaneSurface(Surface):
         if not self.two_sided:
             ok &= denom < 0
         if self.bounds_mm is not None:
-            p = o + dirs * np.where(ok, t, 0.0)[:, None]
-            loc = self.local(p)
+            tt = np.where(ok, t, 0.0)
             x0, x1, y0, y1 = self.bounds_mm
-            ok &= (loc[:, 0] >= x0) & (loc[:, 0] <= x1) & (loc[:, 1] >= y0) & (loc[:, 1] <= y1)
+            for k, (low, high) in enumerate(((x0, x1), (y0, y1))):
+                axis = self._rot[:, k]
+                c = (o - self._p0) @ axis + tt * (dirs @ axis)
+                ok &= (c >= low) & (c <= high)
         return np.where(ok, t, np.inf)
 
     def normal(self, points: NDArray) -> NDArray:
@@ -246,7 +264,14 @@ class PlaneSurface(Surface):
         loc = self.local(points)
         return self.printed.albedo(loc[:, 0], loc[:, 1])
 
-    def section(self, normal: NDArray, d: float, step_mm: float) -> NDArray:
+    def section(
+        self,
+        normal: NDArray,
+        d: float,
+        step_mm: float,
+        clip_center: NDArray | None = None,
+        clip_radius: float = np.inf,
+    ) -> NDArray:
         # Line of the two planes in local coordinates: points with z = 0 and n_l . p + d_l = 0.
         n_l = self._rot.T @ normal
         d_l = float(normal @ self._p0 + d)
@@ -256,7 +281,11 @@ class PlaneSurface(Surface):
         g = np.hypot(a, b)
         base = -d_l / g**2 * np.array([a, b])
         direction = np.array([-b, a]) / g
-        lo, hi = -1e4, 1e4
+        lo, hi = -1e5, 1e5
+        if clip_center is not None and np.isfinite(clip_radius):
+            c_l = self.local(np.asarray(clip_center, dtype=np.float64)[None])[0]
+            mid = float((c_l[:2] - base) @ direction)
+            lo, hi = mid - clip_radius, mid + clip_radius
         if self.bounds_mm is not None:
             x0, x1, y0, y1 = self.bounds_mm
             for k, (low, high) in enumerate(((x0, x1), (y0, y1))):
@@ -288,11 +317,18 @@ class SphereSurface(Surface):
         self.radius = self.diameter_mm / 2
 
     def intersect(self, origin: NDArray, dirs: NDArray) -> NDArray:
-        o = _as_origins(origin, len(dirs))
-        w = o - self.center
+        o = np.asarray(origin, dtype=np.float64)
+        return _bounded(self.center, self.radius * 1.001, o, dirs, self._exact)
+
+    def _exact(self, origin: NDArray, dirs: NDArray) -> NDArray:
+        w = np.asarray(origin, dtype=np.float64) - self.center
         a = np.einsum("ij,ij->i", dirs, dirs)
-        b = np.einsum("ij,ij->i", dirs, w)
-        c = np.einsum("ij,ij->i", w, w) - self.radius**2
+        b = dirs @ w
+        c = w @ w - self.radius**2
+        if c > 0:  # origin outside: rays pointing away or passing wide miss
+            far = b * b < a * c
+            if np.all(far):
+                return np.full(len(dirs), np.inf)
         disc = b * b - a * c
         hit = disc >= 0
         sq = np.sqrt(np.where(hit, disc, 0.0))
@@ -305,7 +341,14 @@ class SphereSurface(Surface):
         v = points - self.center
         return v / np.linalg.norm(v, axis=1, keepdims=True)
 
-    def section(self, normal: NDArray, d: float, step_mm: float) -> NDArray:
+    def section(
+        self,
+        normal: NDArray,
+        d: float,
+        step_mm: float,
+        clip_center: NDArray | None = None,
+        clip_radius: float = np.inf,
+    ) -> NDArray:
         f = float(normal @ self.center + d)
         if abs(f) >= self.radius:
             return np.zeros((0, 3))
@@ -319,6 +362,22 @@ class SphereSurface(Surface):
         n = max(int(np.ceil(2 * np.pi * rho / step_mm)), 16)
         th = np.linspace(0, 2 * np.pi, n, endpoint=False)
         return c + rho * (np.cos(th)[:, None] * e1 + np.sin(th)[:, None] * e2)
+
+
+def _bounded(
+    center: NDArray, radius: float, origin: NDArray, dirs: NDArray, exact: object
+) -> NDArray:
+    """Run ``exact(origin, dirs_subset)`` only for rays passing within ``radius`` of ``center``."""
+    w = center - origin
+    a = np.einsum("ij,ij->i", dirs, dirs)
+    b = dirs @ w
+    ww = float(w @ w)
+    near = (ww - b * b / a <= radius**2) & ((b > 0) | (ww <= radius**2))
+    out = np.full(len(dirs), np.inf)
+    idx = np.flatnonzero(near)
+    if len(idx):
+        out[idx] = exact(origin, dirs[idx])  # type: ignore[operator]
+    return out
 
 
 def _orthonormal_pair(axis: NDArray) -> tuple[NDArray, NDArray]:
@@ -349,18 +408,19 @@ class CylinderSurface(Surface):
 
     def _side_t(self, o: NDArray, dirs: NDArray) -> NDArray:
         w = o - self.p0
-        dp = dirs - (dirs @ self.axis)[:, None] * self.axis
-        wp = w - (w @ self.axis)[:, None] * self.axis
+        da = dirs @ self.axis
+        dp = dirs - da[:, None] * self.axis
+        wp = w - (w @ self.axis) * self.axis
         a = np.einsum("ij,ij->i", dp, dp)
-        b = np.einsum("ij,ij->i", dp, wp)
-        c = np.einsum("ij,ij->i", wp, wp) - self.radius**2
+        b = dp @ wp
+        c = wp @ wp - self.radius**2
         disc = b * b - a * c
         hit = (disc >= 0) & (a > 1e-18)
         sq = np.sqrt(np.where(hit, disc, 0.0))
         out = np.full(len(dirs), np.inf)
         with np.errstate(divide="ignore", invalid="ignore"):
             for t in ((-b - sq) / a, (-b + sq) / a):
-                s = np.einsum("ij,j->i", w + t[:, None] * dirs, self.axis)
+                s = w @ self.axis + t * da
                 ok = hit & (t > 1e-9) & (s >= 0) & (s <= self.length) & (t < out)
                 out = np.where(ok, t, out)
         return out
@@ -371,15 +431,23 @@ class CylinderSurface(Surface):
         with np.errstate(divide="ignore", invalid="ignore"):
             for c in (self.p0, self.p1):
                 t = ((c - o) @ self.axis) / denom
-                p = o + dirs * np.where(np.isfinite(t), t, 0.0)[:, None]
-                r2 = np.einsum("ij,ij->i", p - c, p - c)
+                q = o - c + dirs * np.where(np.isfinite(t), t, 0.0)[:, None]
+                r2 = np.einsum("ij,ij->i", q, q)
                 ok = np.isfinite(t) & (t > 1e-9) & (r2 <= self.radius**2) & (t < out)
                 out = np.where(ok, t, out)
         return out
 
     def intersect(self, origin: NDArray, dirs: NDArray) -> NDArray:
-        o = _as_origins(origin, len(dirs))
-        return np.minimum(self._side_t(o, dirs), self._cap_t(o, dirs))
+        o = np.asarray(origin, dtype=np.float64)
+        centre = (self.p0 + self.p1) / 2
+        bound = float(np.hypot(self.length / 2, self.radius)) * 1.001
+        return _bounded(
+            centre,
+            bound,
+            o,
+            dirs,
+            lambda o_, d_: np.minimum(self._side_t(o_, d_), self._cap_t(o_, d_)),
+        )
 
     def normal(self, points: NDArray) -> NDArray:
         s = (points - self.p0) @ self.axis
@@ -390,7 +458,14 @@ class CylinderSurface(Surface):
         cap = np.where(s[:, None] > self.length / 2, self.axis, -self.axis)
         return np.where(on_side[:, None], out, cap)
 
-    def section(self, normal: NDArray, d: float, step_mm: float) -> NDArray:
+    def section(
+        self,
+        normal: NDArray,
+        d: float,
+        step_mm: float,
+        clip_center: NDArray | None = None,
+        clip_radius: float = np.inf,
+    ) -> NDArray:
         e1, e2 = _orthonormal_pair(self.axis)
         na = float(normal @ self.axis)
         parts = []
@@ -459,7 +534,14 @@ class BoxSurface(Surface):
                 )
 
     def intersect(self, origin: NDArray, dirs: NDArray) -> NDArray:
-        return np.min(np.stack([f.intersect(origin, dirs) for f in self._faces]), axis=0)
+        o = np.asarray(origin, dtype=np.float64)
+        bound = float(np.linalg.norm(self.size_mm)) / 2 * 1.001
+        centre = np.asarray(self.world_from_box, dtype=np.float64)[:3, 3]
+
+        def exact(o_: NDArray, d_: NDArray) -> NDArray:
+            return np.min(np.stack([f.intersect(o_, d_) for f in self._faces]), axis=0)
+
+        return _bounded(centre, bound, o, dirs, exact)
 
     def normal(self, points: NDArray) -> NDArray:
         dist = np.stack([np.abs(f.local(points)[:, 2]) for f in self._faces])
@@ -467,7 +549,14 @@ class BoxSurface(Surface):
         normals = np.stack([f._n for f in self._faces])
         return normals[k]
 
-    def section(self, normal: NDArray, d: float, step_mm: float) -> NDArray:
+    def section(
+        self,
+        normal: NDArray,
+        d: float,
+        step_mm: float,
+        clip_center: NDArray | None = None,
+        clip_radius: float = np.inf,
+    ) -> NDArray:
         parts = [f.section(normal, d, step_mm) for f in self._faces]
         parts = [p for p in parts if len(p)]
         return np.concatenate(parts) if parts else np.zeros((0, 3))
@@ -506,7 +595,12 @@ def segment_blocked(
 
 
 def section_points(
-    surfaces: list[Surface], normal: NDArray, d: float, step_mm: float
+    surfaces: list[Surface],
+    normal: NDArray,
+    d: float,
+    step_mm: float,
+    clip_center: NDArray | None = None,
+    clip_radius: float = np.inf,
 ) -> tuple[NDArray, NDArray]:
     """Exact cut of every surface by the plane ``normal . p + d = 0`` (world frame).
 
@@ -517,7 +611,9 @@ def section_points(
     """
     pts, ids = [], []
     for k, s in enumerate(surfaces):
-        p = s.section(np.asarray(normal, dtype=np.float64), float(d), step_mm)
+        p = s.section(
+            np.asarray(normal, dtype=np.float64), float(d), step_mm, clip_center, clip_radius
+        )
         if len(p):
             pts.append(p)
             ids.append(np.full(len(p), k, dtype=np.int32))
