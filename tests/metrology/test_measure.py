@@ -224,3 +224,40 @@ def test_measure_command_strict_exit_and_bad_input(tmp_path: Path, capsys, monke
         == 2
     )
     assert "expected a .json" in capsys.readouterr().err
+
+
+def test_angles_and_distances_between_kinds():
+    from metrology.fit import fit_cylinder, fit_line, fit_plane, fit_sphere
+    from metrology.measure import evaluate_measurement
+    from metrology.plan import MeasurementSpec
+
+    rng = np.random.default_rng(7)
+    st = rng.uniform(-20, 20, (300, 2))
+    a30 = np.radians(30)
+    fits = {
+        "floor": fit_plane(np.c_[st, np.zeros(300)]),
+        "ramp": fit_plane(np.c_[st[:, 0], st[:, 1] * np.cos(a30), st[:, 1] * np.sin(a30) + 5]),
+        "rod": fit_line(np.outer(rng.uniform(-30, 30, 50), [np.cos(0.35), 0, np.sin(0.35)])),
+        "ball": fit_sphere(
+            [3.0, 4.0, 12.0]
+            + 5 * (d := rng.normal(size=(200, 3))) / np.linalg.norm(d, axis=1)[:, None]
+        ),
+        "pipe": fit_cylinder(
+            np.c_[
+                rng.uniform(-30, 30, 400), 6 * np.cos(t := rng.uniform(0, 6.2, 400)), 6 * np.sin(t)
+            ]
+        ),
+    }
+
+    def value(type_, feats, **kw):
+        spec = MeasurementSpec(name="m", type=type_, features=tuple(feats), **kw)
+        return evaluate_measurement(spec, fits).actual
+
+    assert value("angle", ["floor", "ramp"]) == pytest.approx(30.0, abs=1e-6)
+    assert value("angle", ["rod", "floor"]) == pytest.approx(np.degrees(0.35), abs=1e-6)
+    assert value("angle", ["pipe", "rod"]) == pytest.approx(np.degrees(0.35), abs=1e-6)
+    assert value("distance", ["ball", "floor"]) == pytest.approx(12.0, abs=1e-6)  # signed, above
+    assert value("distance", ["ball"], point_mm=(3.0, 4.0, 0.0)) == pytest.approx(12.0, abs=1e-6)
+    assert value("distance", ["ball", "pipe"]) == pytest.approx(np.hypot(4.0, 12.0), abs=1e-6)
+    assert value("diameter", ["pipe"]) == pytest.approx(12.0, abs=1e-6)
+    assert value("form", ["ball"]) < 1e-9
