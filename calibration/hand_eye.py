@@ -57,6 +57,7 @@ __all__ = [
     "calibrate_hand_eye",
     "check_robot_motion",
     "closed_form_hand_eye",
+    "fix_label_flips",
     "paper_hand_eye",
     "pose_convention_warnings",
 ]
@@ -341,6 +342,93 @@ def _adjust(
     return x, z, cam, std, res
 
 
+def _grid_flip_order(points_target: NDArray) -> NDArray | None:
+    """Index order that relabels a point grid rotated by 180 degrees in its plane, or None.
+
+    A chessboard or circle grid detector may number the same board from the opposite corner
+    in some images. Reversing a row-major grid's order is exactly that rotation; it applies
+    when the reversed points are the points turned by 180 degrees about their centre.
+    """
+    n = len(points_target)
+    if n < 4:
+        return None
+    c = points_target.mean(axis=0)
+    order = np.arange(n)[::-1]
+    turned = 2 * c - points_target
+    turned[:, 2] = points_target[:, 2]
+    if np.allclose(points_target[order], turned, atol=1e-6):
+        return order
+    return None
+
+
+def _rotation_angle(t: NDArray) -> float:
+    return float(Rotation.from_matrix(t[:3, :3]).magnitude())
+
+
+def fix_label_flips(
+    views: Sequence[PosedView], camera: CameraModel
+) -> tuple[list[PosedView], list[int]]:
+    """Relabel views whose grid detection came back turned by 180 degrees.
+
+    With the target fixed, the rotation angle of the robot motion between two views equals
+    that of the camera motion (``A X = X B`` keeps the angle). A view numbered from the
+    opposite corner breaks that equality against the others; relabelling it restores it.
+
+    Returns
+    -------
+    views : list of PosedView
+        With ``points_px`` reordered (and ``cam_from_target`` recomputed) where flipped.
+    flipped : list of int
+        Frame ids that were relabelled.
+    """
+    if len(views) < 3 or any(v.cam_from_target is None for v in views):
+        return list(views), []
+    order = _grid_flip_order(views[0].points_target)
+    if order is None or any(len(v.points_target) != len(order) for v in views):
+        return list(views), []
+    flip = make_transform(Rotation.from_euler("z", 180, degrees=True), np.zeros(3))
+    # Turning the labels by 180 degrees about the grid centre c: cam_from_target' =
+    # cam_from_target @ T(c) @ Rz(180) @ T(-c).
+    c = views[0].points_target.mean(axis=0)
+    about_c = make_transform(np.eye(3), c) @ flip @ make_transform(np.eye(3), -c)
+    n = len(views)
+    cts = [v.cam_from_target for v in views]
+    alt = [ct @ about_c for ct in cts]  # type: ignore[operator]
+    fl = [v.base_from_flange for v in views]
+
+    def mismatch(i: int, ci: NDArray, j: int, cj: NDArray) -> float:
+        a = _rotation_angle(invert_transform(fl[j]) @ fl[i])
+        b = _rotation_angle(cj @ invert_transform(ci))
+        return abs(a - b)
+
+    # Choose each view's labelling to agree with the majority of the others (two passes).
+    state = [False] * n
+    for _ in range(2):
+        for j in range(n):
+            cost = [0.0, 0.0]
+            for k in range(n):
+                if k == j:
+                    continue
+                ck = alt[k] if state[k] else cts[k]
+                cost[0] += min(mismatch(k, ck, j, cts[j]), 0.5)
+                cost[1] += min(mismatch(k, ck, j, alt[j]), 0.5)
+            state[j] = cost[1] < cost[0]
+    if sum(state) > n / 2:  # keep the majority's numbering
+        state = [not s for s in state]
+    out, flipped = [], []
+    for v, s in zip(views, state):
+        if s:
+            px = v.points_px[order]
+            pose = estimate_pose(px, v.points_target, camera)
+            out.append(
+                PosedView(v.frame_id, v.base_from_flange, px, v.points_target, pose.cam_from_target)
+            )
+            flipped.append(int(v.frame_id))
+        else:
+            out.append(v)
+    return out, flipped
+
+
 def _per_view_poses(
     views: Sequence[PosedView], camera: CameraModel
 ) -> tuple[list[PosedView], list[str]]:
@@ -422,6 +510,9 @@ def calibrate_hand_eye(
         )
     views, rejected = _per_view_poses(views, camera)
     warnings = list(rejected)
+    views, flipped = fix_label_flips(views, camera)
+    if flipped:
+        warnings.append(f"grid numbered from the opposite corner, relabelled: frames {flipped}")
     if len(views) < 3:
         return HandEyeResult(
             False,

@@ -176,3 +176,22 @@ def test_paper_hand_eye_needs_views_on_o_a_and_c():
     views = [v for v in _paper_views(rng, 0.0) if v.name != "C"]
     res = paper_hand_eye(views, 80.0)
     assert not res and "on C" in res.reason
+
+
+def test_grid_numbered_from_the_opposite_corner_is_relabelled():
+    rng = np.random.default_rng(8)
+    cam = S.camera()
+    views, cam = S.posed_views(10, rng, noise_px=0.05, cam=cam)
+    # A 9x9 grid centred on the origin: reversing the order turns it by 180 degrees.
+    flipped_ids = {2, 5}
+    mixed = [
+        PosedView(v.frame_id, v.base_from_flange, v.points_px[::-1].copy(), v.points_target)
+        if v.frame_id in flipped_ids
+        else v
+        for v in views
+    ]
+    res = calibrate_hand_eye(mixed, cam)
+    assert res, res.reason
+    assert any("relabelled" in w and "2" in w and "5" in w for w in res.warnings)
+    dr, dt = _errors(res.flange_from_cam)
+    assert dr < 0.02 and dt < 0.1
