@@ -1,0 +1,265 @@
+"""Calibration accuracy: the default method against OpenCV's baselines and the paper's method.
+
+Prints tables (Markdown) for:
+
+* the virtual cells (``modern``, ``paper``): light-plane normal and d, hand-eye rotation and
+  translation errors against the simulator's truth, for the default, the paper's method and
+  the anchor (OpenCV chessboard calibration at the same poses, its five AX=XB solvers and a
+  Horus-style plane fit);
+* ``kuka_1`` (real, chessboard): whole-chain reprojection RMS and the scatter of the board's
+  origin in the base frame, default against OpenCV's solvers with the same intrinsics;
+* ``zhaocongyang_linelight`` (real, circle grid): light-plane normal against the authors' and
+  the distance of their point cloud to our plane.
+
+Usage::
+
+    python benchmarks/bench_calibration.py [--cells modern paper] [--work /tmp/bench_calib]
+        [--skip-real] [--skip-cells]
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from calibration.detect import detect_target
+from calibration.extrinsics import estimate_pose
+from calibration.hand_eye import PosedView, calibrate_hand_eye, fix_label_flips
+from calibration.intrinsics import calibrate_intrinsics
+from calibration.light_plane import LaserView, calibrate_light_plane, fit_plane
+from calibration.opencv_adapter import AX_XB_METHODS
+from calibration.pipeline import calibrate_session, target_extent_mm
+from scanner.calibration_file import LightPlane
+from scanner.camera import CameraModel
+from scanner.conventions import angle_between_rotations_deg
+from scanner.fileio import load_gray_image
+from scanner.session import read_session
+from scanner.targets import ChessboardTarget, CircleGridTarget
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def real_data_root() -> Path:
+    return Path(os.environ.get("SCANNER_REAL_DATA", REPO.parent / "shared" / "data" / "real"))
+
+
+def plane_errors(plane: LightPlane, truth: LightPlane) -> tuple[float, float]:
+    """Angle between normals (deg) and difference of d (mm), sign-aligned."""
+    n, d = plane.normal, plane.d
+    if n @ truth.normal < 0:
+        n, d = -n, -d
+    ang = float(np.degrees(np.arccos(np.clip(n @ truth.normal, -1, 1))))
+    return ang, float(d - truth.d)
+
+
+def hand_eye_errors(x: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
+    return angle_between_rotations_deg(x, truth), float(np.linalg.norm(x[:3, 3] - truth[:3, 3]))
+
+
+# ------------------------------------------------------------------------------- virtual cells
+
+
+def _simulate(cell: str, out: Path, target: str | None, seed: int) -> Any:
+    from scanner.virtual_cell.simulate import simulate_cell
+    from scanner.virtual_cell.truth import read_truth
+
+    if not (out / "truth.json").is_file():
+        simulate_cell(cell, out, seed=seed, target=target, sessions=("calibration",), workers=2)
+    return read_truth(out / "truth.json")
+
+
+def opencv_anchor(session_dir: Path) -> dict[str, Any]:
+    """OpenCV chessboard calibration at the same poses, five AX=XB solvers, Horus plane fit."""
+    from scanner.scanning.stripe import extract_stripe
+
+    session = read_session(session_dir)
+    target = session.target
+    obj = target.object_points().astype(np.float32)  # type: ignore[union-attr]
+    pattern = tuple(target.inner_corners)  # type: ignore[union-attr]
+    corners: dict[int, np.ndarray] = {}
+    for f in session.frames:
+        if f.target_image is None:
+            continue
+        img = load_gray_image(f.target_image)
+        if img.dtype != np.uint8:
+            img = (img / 257).astype(np.uint8)
+        ok, c = cv2.findChessboardCornersSB(img, pattern, flags=cv2.CALIB_CB_ACCURACY)
+        if ok:
+            corners[f.id] = c.reshape(-1, 2)
+    ids = list(corners)
+    rms, K, dist, _, _ = cv2.calibrateCamera(
+        [obj] * len(ids),
+        [corners[i].astype(np.float32) for i in ids],
+        (session.width, session.height),
+        None,
+        None,
+    )
+    cam = CameraModel(session.width, session.height, K, dist.ravel())
+    poses = {}
+    for i in ids:
+        p = estimate_pose(corners[i], obj.astype(np.float64), cam, refine=False)
+        if p:
+            poses[i] = p.cam_from_target
+    # Horus-style light plane: stripe (row-wise peak) on the board plane, one SVD plane fit.
+    pts = []
+    for f in session.frames:
+        if f.laser_image is None or f.id not in poses:
+            continue
+        prof = extract_stripe(session.load_laser_image(f), mode="fast")
+        ct = poses[f.id]
+        from calibration.light_plane import stripe_points_on_target
+
+        p = stripe_points_on_target(np.column_stack([prof.u, prof.v]), cam, ct)
+        p = p[np.all(np.isfinite(p), axis=1)]
+        pt = (p - ct[:3, 3]) @ ct[:3, :3]
+        x0, x1, y0, y1 = target_extent_mm(target)  # type: ignore[arg-type]
+        keep = (pt[:, 0] > x0) & (pt[:, 0] < x1) & (pt[:, 1] > y0) & (pt[:, 1] < y1)
+        pts.append(p[keep])
+    fit = fit_plane(np.vstack(pts))
+    plane = LightPlane(fit.normal, fit.d)
+    posed = [f for f in session.frames if f.has_pose and f.id in corners]
+    views = [
+        PosedView(
+            f.id, f.base_from_flange, corners[f.id].astype(float), obj.astype(float), poses[f.id]
+        )  # type: ignore[arg-type]
+        for f in posed
+    ]
+    views, _ = fix_label_flips(views, cam)
+    hand_eye = {}
+    for m in AX_XB_METHODS:
+        r = calibrate_hand_eye(views, cam, m)
+        if r:
+            hand_eye[m] = r.flange_from_cam
+    return {"plane": plane, "hand_eye": hand_eye, "rms": rms}
+
+
+def bench_cell(
+    cell: str, work: Path, seed: int = 0
+) -> list[tuple[str, str, float, float, float, float, float]]:
+    """Rows: (cell, method, normal deg, d mm, he rot deg, he trans mm, seconds)."""
+    rows = []
+    truth = _simulate(cell, work / f"{cell}_own", None, seed)
+    session = read_session(work / f"{cell}_own" / "calibration")
+    for method in ("default", "paper"):
+        t0 = time.perf_counter()
+        try:
+            res = calibrate_session(session, method=method, progress=False)  # type: ignore[arg-type]
+        except ValueError as exc:
+            logging.warning("%s %s: %s", cell, method, exc)
+            continue
+        dt = time.perf_counter() - t0
+        na, dd = plane_errors(res.calibration.light_plane, truth.light_plane)
+        hr, ht = hand_eye_errors(res.calibration.flange_from_cam, truth.flange_from_cam)
+        rows.append((cell, method, na, dd, hr, ht, dt))
+    _simulate(cell, work / f"{cell}_chess", "chessboard", seed)
+    t0 = time.perf_counter()
+    anchor = opencv_anchor(work / f"{cell}_chess" / "calibration")
+    dt = time.perf_counter() - t0
+    na, dd = plane_errors(anchor["plane"], truth.light_plane)
+    for m, x in anchor["hand_eye"].items():
+        hr, ht = hand_eye_errors(x, truth.flange_from_cam)
+        rows.append((cell, f"OpenCV chessboard + {m} + Horus plane", na, dd, hr, ht, dt))
+    return rows
+
+
+# ----------------------------------------------------------------------------------- real data
+
+
+def bench_kuka(root: Path) -> list[tuple[str, float, float, float, float]]:
+    """Rows: (method, chain RMS px, origin std x, y, z mm), same intrinsics for all."""
+    folder = root / "kuka_1"
+    poses = np.loadtxt(folder / "RobotPosesVec.txt").reshape(-1, 4, 4)
+    poses[:, :3, 3] *= 1000.0  # metres -> mm
+    target = ChessboardTarget((28, 17), 20.0)
+    obs = [detect_target(load_gray_image(folder / f"{i:02d}.png"), target) for i in range(1, 31)]
+    intr = calibrate_intrinsics(obs, (1928, 1208), "default", target)
+    cam = CameraModel(1928, 1208, intr.K, intr.dist)
+    views = [PosedView(i, poses[i], o.points_px, o.points_target) for i, o in enumerate(obs) if o]
+    rows = []
+    for m in (*AX_XB_METHODS, "shah", "li", "default"):
+        r = calibrate_hand_eye(views, cam, m)
+        rows.append((m, r.rms_px, *r.target_spread_mm.tolist()))
+    return rows
+
+
+def bench_linelight(root: Path) -> dict[str, float]:
+    folder = root / "zhaocongyang_linelight"
+    target = CircleGridTarget((7, 7), 37.5)
+    obs, laser = [], []
+    from scanner.scanning.stripe import extract_stripe
+
+    for i in range(12):
+        img = load_gray_image(folder / "calib_picture" / f"calib{i}.jpg")
+        obs.append(detect_target(img, target))
+        on = load_gray_image(folder / "light_picture" / f"light{i}.jpg", laser=True)
+        off = load_gray_image(folder / "calib_picture" / f"calib{i}.jpg", laser=True)
+        prof = extract_stripe(on, mode="precise", background=off)
+        laser.append(np.column_stack([prof.u, prof.v]))
+    intr = calibrate_intrinsics(obs, (1920, 1080), "default", target)
+    cam = CameraModel(1920, 1080, intr.K, intr.dist)
+    views = []
+    for i, o in enumerate(obs):
+        if not o:
+            continue
+        pose = estimate_pose(o.points_px, o.points_target, cam)
+        views.append(LaserView(i, laser[i], pose.cam_from_target, target_extent_mm(target)))  # type: ignore[arg-type]
+    res = calibrate_light_plane(views, cam)
+    authors = LightPlane(np.array([-0.130517, -6.395953, 1.0]), -304.9186)
+    ang, _ = plane_errors(res.plane, authors)  # type: ignore[arg-type]
+    cloud = np.loadtxt(folder / "pointcloud.txt")
+    dist = res.plane.signed_distance(cloud)  # type: ignore[union-attr]
+    return {
+        "normal_deg": ang,
+        "cloud_mean_mm": float(np.mean(dist)),
+        "cloud_rms_mm": float(np.sqrt(np.mean(dist**2))),
+        "cloud_max_mm": float(np.abs(dist).max()),
+        "plane_rms_mm": res.rms_mm,
+        "frames": len(res.per_frame),
+        "rejected": [r["frame_id"] for r in res.rejected],  # type: ignore[dict-item]
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("--cells", nargs="*", default=["modern", "paper"])
+    ap.add_argument("--work", type=Path, default=Path("/tmp/bench_calibration"))
+    ap.add_argument("--skip-real", action="store_true")
+    ap.add_argument("--skip-cells", action="store_true")
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.WARNING)
+    if not args.skip_cells:
+        print(
+            "| cell | method | normal err (deg) | d err (mm) | hand-eye rot (deg) | hand-eye trans (mm) | time (s) |"
+        )
+        print("|---|---|---|---|---|---|---|")
+        for cell in args.cells:
+            for c, m, na, dd, hr, ht, dt in bench_cell(cell, args.work):
+                print(f"| {c} | {m} | {na:.5f} | {dd:+.4f} | {hr:.5f} | {ht:.4f} | {dt:.1f} |")
+        print()
+    root = real_data_root()
+    if args.skip_real or not root.is_dir():
+        return
+    print("kuka_1 (same intrinsics for every solver):")
+    print("| method | chain RMS (px) | origin std x (mm) | y | z | 3-D |")
+    print("|---|---|---|---|---|---|")
+    for m, rms, sx, sy, sz in bench_kuka(root):
+        print(
+            f"| {m} | {rms:.3f} | {sx:.3f} | {sy:.3f} | {sz:.3f} | {np.sqrt(sx**2 + sy**2 + sz**2):.3f} |"
+        )
+    print()
+    print("zhaocongyang_linelight:")
+    for k, v in bench_linelight(root).items():
+        print(f"  {k}: {v}")
+
+
+if __name__ == "__main__":
+    main()
