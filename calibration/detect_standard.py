@@ -32,7 +32,7 @@ def _to_u8(image: NDArray) -> NDArray:
 
 
 def detect_chessboard(image: NDArray, target: ChessboardTarget) -> TargetObservation:
-    """Inner corners of a chessboard (``findChessboardCornersSB``, accuracy mode).
+    """Inner corners of a chessboard (``findChessboardCornersSB``).
 
     Returns
     -------
@@ -43,13 +43,13 @@ def detect_chessboard(image: NDArray, target: ChessboardTarget) -> TargetObserva
     img = _to_u8(image)
     size = (int(img.shape[1]), int(img.shape[0]))
     pattern = tuple(int(v) for v in target.inner_corners)
-    flags = cv2.CALIB_CB_ACCURACY | cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE
-    found, corners = cv2.findChessboardCornersSB(img, pattern, flags=flags)
-    if not found:
-        # Large images: a first search at lower resolution makes the detector faster and surer.
-        found, corners = cv2.findChessboardCornersSB(
-            img, pattern, flags=flags | cv2.CALIB_CB_LARGER
-        )
+    # Plain first (fast, and image normalisation hurts on some real boards), then the
+    # exhaustive search for hard views.
+    found, corners = False, None
+    for flags in (0, cv2.CALIB_CB_EXHAUSTIVE):
+        found, corners = cv2.findChessboardCornersSB(img, pattern, flags=flags)
+        if found:
+            break
     if not found or corners is None:
         return TargetObservation.failed(
             f"chessboard with {pattern[0]}x{pattern[1]} inner corners not found", size, "chessboard"

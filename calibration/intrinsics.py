@@ -490,7 +490,7 @@ class _Solution:
 
 
 def _levenberg_marquardt(
-    prob: _Problem, x0: NDArray, f_scale: float, max_iter: int = 60
+    prob: _Problem, x0: NDArray, f_scale: float, free: NDArray, max_iter: int = 60
 ) -> _Solution:
     """Levenberg-Marquardt on the normal equations with a robust soft-L1 loss (IRLS weights).
 
@@ -515,7 +515,9 @@ def _levenberg_marquardt(
         improved = False
         for _ in range(12):
             try:
-                dx = -np.linalg.solve(A + lam * np.diag(dA), g)
+                dx = np.zeros_like(x)
+                Af = (A + lam * np.diag(dA))[np.ix_(free, free)]
+                dx[free] = -np.linalg.solve(Af, g[free])
             except np.linalg.LinAlgError:
                 lam *= 10
                 continue
@@ -543,15 +545,24 @@ def _adjust(
     K0: NDArray,
     dist0: NDArray,
     poses0: NDArray,
-    f_scale_px: float,
+    f_scale_px: float | None,
     max_per_ring: int,
-) -> tuple[NDArray, NDArray, _Problem, object]:
+    fixed: tuple[str, ...] = (),
+) -> tuple[NDArray, NDArray, _Problem, _Solution]:
+    """One robust adjustment; with ``f_scale_px=None`` the loss scale is 3 robust sigmas of
+    the residuals of a first pass (so honest noise is weighted as least squares)."""
     data = _gather(obs_list, max_per_ring)
     _initial_psi(data, K0, poses0)
     prob = _Problem(data, len(obs_list))
     x0 = np.r_[K0[0, 0], K0[1, 1], K0[0, 2], K0[1, 2], dist0[:5], poses0.ravel()]
     prob.update_psi(x0, iterations=6)
-    sol = _levenberg_marquardt(prob, x0, f_scale_px)
+    free = np.ones(x0.size, bool)
+    free[[PARAM_NAMES.index(n) for n in fixed]] = False
+    sol = _levenberg_marquardt(prob, x0, 1.0 if f_scale_px is None else f_scale_px, free)
+    if f_scale_px is None:
+        r = prob.residuals(sol.x)
+        sigma = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+        sol = _levenberg_marquardt(prob, sol.x, max(3.0 * sigma, 0.02), free)
     prob.update_psi(sol.x, iterations=3)
     return sol.x, prob.residuals(sol.x, update=False), prob, sol
 
@@ -561,8 +572,9 @@ def calibrate_intrinsics(
     image_size: tuple[int, int],
     method: Literal["default", "paper"] = "default",
     target: object | None = None,
-    f_scale_px: float = 0.3,
-    max_points_per_ring: int = 240,
+    f_scale_px: float | None = None,
+    max_points_per_ring: int = 600,
+    fixed: tuple[str, ...] = (),
 ) -> IntrinsicsResult:
     """Calibrate the camera from observations of a planar target.
 
@@ -575,10 +587,14 @@ def calibrate_intrinsics(
     method : {"default", "paper"}
     target : TargetSpec, optional
         The target spec (not needed: observations carry target coordinates).
-    f_scale_px : float
-        Residual size, pixels, beyond which the robust (soft L1) loss down-weights a point.
+    f_scale_px : float, optional
+        Residual size, pixels, beyond which the robust (soft L1) loss down-weights a point;
+        by default 3 robust standard deviations of a first pass's residuals.
     max_points_per_ring : int
         Ring edge points used per ring and view (evenly subsampled), for speed.
+    fixed : tuple of str
+        Names from ``PARAM_NAMES`` held at their initial value (distortion terms at 0), e.g.
+        ``("p1", "p2", "k3")`` for the two-term radial model of Zhang's published result.
 
     Returns
     -------
@@ -590,6 +606,9 @@ def calibrate_intrinsics(
         Fewer than 4 usable views, or views that cannot determine the intrinsics (e.g. the
         paper method on a non-concentric target, or all views parallel), naming what is missing.
     """
+    unknown = [n for n in fixed if n not in PARAM_NAMES]
+    if unknown:
+        raise ValueError(f"fixed: expected names from {PARAM_NAMES}, got {unknown}")
     if method not in ("default", "paper"):
         raise ValueError(f"method: expected 'default' or 'paper', got {method!r}")
     w, h = (int(image_size[0]), int(image_size[1]))
@@ -639,6 +658,10 @@ def calibrate_intrinsics(
             warnings.append("paper estimate implausible; initialised with OpenCV calibrateCamera")
     if K0 is None:
         K0, dist0 = _opencv_init(obs, (w, h))
+    dist0 = np.array(dist0, dtype=np.float64)
+    for n in fixed:
+        if PARAM_NAMES.index(n) >= 4:
+            dist0[PARAM_NAMES.index(n) - 4] = 0.0
     poses0 = []
     keep = []
     for j, ob in enumerate(obs):
@@ -653,7 +676,7 @@ def calibrate_intrinsics(
     if len(obs) < MIN_VIEWS:
         raise ValueError(f"intrinsics: expected >= {MIN_VIEWS} views with a pose, got {len(obs)}")
     poses = np.asarray(poses0)
-    x, res, prob, sol = _adjust(obs, K0, dist0, poses, f_scale_px, max_points_per_ring)
+    x, res, prob, sol = _adjust(obs, K0, dist0, poses, f_scale_px, max_points_per_ring, fixed)
 
     # -- outlier views
     for _ in range(2):
@@ -672,7 +695,7 @@ def calibrate_intrinsics(
         used = [used[j] for j in keep]
         poses = x[9:].reshape(-1, 6)[keep]
         K1 = np.array([[x[0], 0, x[2]], [0, x[1], x[3]], [0, 0, 1.0]])
-        x, res, prob, sol = _adjust(obs, K1, x[4:9], poses, f_scale_px, max_points_per_ring)
+        x, res, prob, sol = _adjust(obs, K1, x[4:9], poses, f_scale_px, max_points_per_ring, fixed)
 
     views = prob.residual_views()
     per_view = np.array([np.sqrt(np.mean(res[views == v] ** 2)) for v in range(len(obs))])
@@ -688,11 +711,15 @@ def calibrate_intrinsics(
     std: dict[str, float] = {}
     corr = np.full((9, 9), np.nan)
     try:
-        cov = np.linalg.inv(J.T @ J) * sigma2
+        free = np.ones(x.size, bool)
+        free[[PARAM_NAMES.index(n) for n in fixed]] = False
+        cov = np.zeros((x.size, x.size))
+        cov[np.ix_(free, free)] = np.linalg.inv((J.T @ J)[np.ix_(free, free)]) * sigma2
         c9 = cov[:9, :9]
         sd = np.sqrt(np.maximum(np.diag(c9), 0))
         std = {n: float(v) for n, v in zip(PARAM_NAMES, sd)}
-        corr = c9 / np.outer(sd, sd)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            corr = c9 / np.outer(sd, sd)
     except np.linalg.LinAlgError:
         warnings.append("normal matrix singular: parameters not all determined by these views")
     tilts = _view_tilts_deg(poses)
