@@ -189,3 +189,75 @@ def test_bad_input_is_refused_saying_expected_and_got():
         extract_stripe(np.dstack([img, img, img]))
     with pytest.raises(ValueError, match="background: expected the image's shape"):
         extract_stripe(img, background=img[:-1])
+
+
+# --------------------------------------------------------------------------------------------
+# The virtual cell's rendered laser images (lens, PSF, shot noise, speckle, shadows).
+
+
+def _cell_frame(speckle: bool):
+    vc = pytest.importorskip("scanner.virtual_cell.capture")
+    from dataclasses import replace
+
+    from scanner.virtual_cell.cell import load_cell
+    from scanner.virtual_cell.poses import sweep_poses
+
+    cell = load_cell("modern")
+    if not speckle:
+        cell = replace(cell, laser=replace(cell.laser, speckle_contrast=0.0))
+    base_from_cam, _ = sweep_poses(cell, 400)
+    img, truth = vc.render_laser_image(cell, base_from_cam[200], np.random.default_rng(200))
+    return img, truth.uv, np.asarray(truth.surface_ids, dtype=object)[truth.surface]
+
+
+def _cell_errors(profile: StripeProfile, uv_true: np.ndarray):
+    """Along-line error against the true centre curve, and the distance to it."""
+    from scipy.spatial import cKDTree
+
+    dist, k = cKDTree(uv_true).query(profile.uv, k=2)
+    p1, p2 = uv_true[k[:, 0]], uv_true[k[:, 1]]
+    a = 1 if profile.orientation == "cols" else 0  # the coordinate along the scan line
+    b = 1 - a
+    step = p2[:, b] - p1[:, b]
+    ok = np.abs(step) > 1e-6
+    across = profile.uv[:, b]
+    along_true = p1[:, a] + (across - p1[:, b]) * (p2[:, a] - p1[:, a]) / np.where(ok, step, 1.0)
+    return profile.uv[:, a] - along_true, dist[:, 0], k[:, 0], ok
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["fast", "precise"])
+def test_virtual_cell_frame_without_speckle(mode):
+    img, uv_true, surface = _cell_frame(speckle=False)
+    p = extract_stripe(img, mode=mode, orientation="auto")
+    err, dist, nearest, ok = _cell_errors(p, uv_true)
+    clean = p.flags == 0
+    assert np.all(dist[clean] < 1.0)  # no false points among the unflagged ones
+    table = clean & ok & (surface[nearest] == "table")
+    assert np.count_nonzero(table) > 500
+    assert np.sqrt(np.mean(err[table] ** 2)) < 0.035
+    assert abs(np.mean(err[table])) < 0.01
+    # The plate is bright enough to saturate: its interior still lands within 0.03 px.
+    # Interior of the top: 15 lines away from the plate's ends. The box's lit sides (about 11
+    # lines here) run along the scan lines, and at their corner with the top the PSF blends
+    # the two faces: no single centre is right there.
+    on_plate = surface == "plate"
+    b = 0 if p.orientation == "cols" else 1
+    lo, hi = uv_true[on_plate, b].min() + 15, uv_true[on_plate, b].max() - 15
+    inner = (p.uv[:, b] > lo) & (p.uv[:, b] < hi)
+    unflagged_but_saturation = (p.flags & ~np.uint8(StripeFlag.SATURATED)) == 0
+    plate = ok & (surface[nearest] == "plate") & inner & unflagged_but_saturation
+    assert np.count_nonzero(p.flags[plate] & StripeFlag.SATURATED) > 50
+    assert np.sqrt(np.mean(err[plate] ** 2)) < 0.03
+
+
+@pytest.mark.slow
+def test_virtual_cell_frame_with_speckle_is_speckle_limited():
+    img, uv_true, surface = _cell_frame(speckle=True)
+    p = extract_stripe(img, mode="fast", orientation="auto")
+    err, dist, nearest, ok = _cell_errors(p, uv_true)
+    clean = p.flags == 0
+    assert np.all(dist[clean] < 1.5)
+    table = clean & ok & (surface[nearest] == "table")
+    # Speckle (contrast 0.25) moves the centres by ~0.1 px, correlated along the stripe.
+    assert np.sqrt(np.mean(err[table] ** 2)) < 0.15
