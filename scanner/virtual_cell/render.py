@@ -384,6 +384,14 @@ def stripe_truth(
     visible = (idx == sid) & (t > 1.0 - 1e-7)
     lit = ~segment_blocked(scene.surfaces, laser.origin, pts)
     keep = visible & lit
-    uv = camera.model().project(pc[keep])
-    inside = camera.model().in_image(uv)
+    model = camera.model()
+    uv = model.project(pc[keep])
+    inside = model.in_image(uv)
+    if model.has_distortion and np.any(inside):
+        # Far outside the field the distortion polynomial folds back into the image: keep
+        # only points whose pixel undistorts to their own ray (as the renderer sees them).
+        xy = pc[keep][:, :2] / pc[keep][:, 2:]
+        back = np.full_like(xy, np.inf)
+        back[inside] = model.normalize(uv[inside])
+        inside &= np.linalg.norm(back - xy, axis=1) < 1e-6
     return StripeTruth(uv[inside], sid[keep][inside], pts[keep][inside], ids)
