@@ -5,7 +5,8 @@ Each fit runs in two steps:
 1. **Robust detection** (optional, when ``threshold_mm`` is given): MSAC, a RANSAC variant that
    scores a hypothesis by its truncated squared distances, on a seeded random subsample of at
    most :data:`RANSAC_SUBSAMPLE` points, with the iteration count adapted to the inlier ratio.
-   The best model's inliers are then taken from the full cloud.
+   The best model's inliers are then taken from the full cloud (for a big cloud, after the
+   whole robust fit has run on the subsample).
 2. **Geometric least squares** on the inliers: orthogonal distances minimised by
    :func:`scipy.optimize.least_squares` with analytic Jacobians, started from a closed-form or
    algebraic estimate (for the plane and the line the orthogonal least-squares solution *is*
@@ -64,6 +65,8 @@ log = logging.getLogger(__name__)
 
 #: RANSAC hypotheses are scored on at most this many points (a seeded random subsample).
 RANSAC_SUBSAMPLE = 20_000
+#: The cylinder's RANSAC (two points and their normals) runs on at most this many points.
+CYLINDER_RANSAC_SUBSAMPLE = 5_000
 #: Least squares converges on at most this many points before the final pass on all of them.
 LSQ_SUBSAMPLE = 50_000
 #: After RANSAC, least squares and the inlier set are alternated until the set is stable, at
@@ -426,8 +429,11 @@ def _gauss_newton_polish(
     cost = float(r @ r)
     for _ in range(max_steps):
         j = jac(x, pts)
+        jtj = j.T @ j
         try:
-            step = np.linalg.solve(j.T @ j, -(j.T @ r))
+            step = np.linalg.solve(jtj, -(j.T @ r))
+            # parameter standard deviations: a step far below them changes nothing that matters
+            std = np.sqrt(np.abs(np.diag(np.linalg.inv(jtj))) * cost / max(len(r) - len(x), 1))
         except np.linalg.LinAlgError:
             return None
         x_new = x + step
@@ -436,7 +442,7 @@ def _gauss_newton_polish(
         if not math.isfinite(cost_new) or cost_new > cost * (1 + 1e-9) + 1e-24 * len(pts):
             return None
         x, r, cost = x_new, r_new, cost_new
-        if np.linalg.norm(step) <= 1e-12 * (1.0 + np.linalg.norm(x)):
+        if np.all(np.abs(step) <= np.maximum(1e-4 * std, 1e-12 * (1.0 + np.abs(x)))):
             break
     return x
 
@@ -712,7 +718,18 @@ def fit_sphere(
         return SphereFit(reason=f"too few points: expected at least 4, got {n_all}")
     rng = _rng(seed)
     mask = np.ones(n_all, dtype=bool)
-    if threshold_mm is not None:
+    presolved = False
+    if threshold_mm is not None and n_all > RANSAC_SUBSAMPLE:
+        # RANSAC and the inlier rounds on a subsample, then the full cloud from that model
+        pre = fit_sphere(
+            pts[_subsample(n_all, RANSAC_SUBSAMPLE, rng)], threshold_mm, seed=rng,
+            max_iterations=max_iterations, radius_range_mm=radius_range_mm,
+        )  # fmt: skip
+        if not pre:
+            return pre
+        mask = np.abs(pre.signed_distance(pts)) < threshold_mm
+        presolved = True
+    if threshold_mm is not None and not presolved:
         sub = pts[_subsample(n_all, RANSAC_SUBSAMPLE, rng)]
         r_lo, r_hi = _radius_bounds(radius_range_mm, sub)
 
@@ -940,10 +957,21 @@ def fit_cylinder(
     rng = _rng(seed)
     mask = np.ones(n_all, dtype=bool)
     candidates: list[tuple[NDArray, NDArray]] = []
-    if threshold_mm is not None:
+    presolved = False
+    if threshold_mm is not None and n_all > CYLINDER_RANSAC_SUBSAMPLE:
+        pre = fit_cylinder(
+            pts[_subsample(n_all, CYLINDER_RANSAC_SUBSAMPLE, rng)], threshold_mm, seed=rng,
+            max_iterations=max_iterations, radius_range_mm=radius_range_mm, axis_hint=axis_hint,
+        )  # fmt: skip
+        if not pre:
+            return pre
+        mask = np.abs(pre.signed_distance(pts)) < threshold_mm
+        candidates.append((pre.axis, pre.point_mm))
+        presolved = True
+    if threshold_mm is not None and not presolved:
         import open3d as o3d
 
-        sub = pts[_subsample(n_all, min(RANSAC_SUBSAMPLE, 5000), rng)]
+        sub = pts[_subsample(n_all, CYLINDER_RANSAC_SUBSAMPLE, rng)]
         pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(sub))
         pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=min(20, len(sub) - 1)))
         normals = np.asarray(pcd.normals)
@@ -1132,7 +1160,17 @@ def fit_circle(
         return CircleFit(reason=f"too few points: expected at least 4, got {n_all}")
     rng = _rng(seed)
     mask = np.ones(n_all, dtype=bool)
-    if threshold_mm is not None:
+    presolved = False
+    if threshold_mm is not None and n_all > RANSAC_SUBSAMPLE:
+        pre = fit_circle(
+            pts[_subsample(n_all, RANSAC_SUBSAMPLE, rng)], threshold_mm, seed=rng,
+            max_iterations=max_iterations, radius_range_mm=radius_range_mm,
+        )  # fmt: skip
+        if not pre:
+            return pre
+        mask = pre.distance(pts) < threshold_mm
+        presolved = True
+    if threshold_mm is not None and not presolved:
         sub = pts[_subsample(n_all, RANSAC_SUBSAMPLE, rng)]
         r_lo, r_hi = _radius_bounds(radius_range_mm, sub)
 
