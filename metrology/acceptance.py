@@ -68,6 +68,7 @@ __all__ = [
     "SphereArtefact",
     "load_acceptance_spec",
     "run_acceptance",
+    "write_acceptance_report",
 ]
 
 log = logging.getLogger(__name__)
@@ -450,3 +451,11 @@ def _with_mask(fit: Fit, mask: NDArray) -> Fit:
     full = mask.copy()
     full[mask] = fit.inliers
     return dataclasses.replace(fit, inliers=full)
+
+
+def write_acceptance_report(result: AcceptanceResult, out_json: str | os.PathLike[str]) -> dict:
+    """Write ``<out>.json``, ``<out>.csv`` and ``<out>.html`` of an acceptance result (the
+    writer lives in :mod:`metrology.report`; re-exported here for convenience)."""
+    from metrology.report import write_acceptance_report as write
+
+    return write(result, out_json)
