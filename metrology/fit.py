@@ -165,7 +165,18 @@ class Fit:
         )
         if self.min_zone_mm is not None:
             out["min_zone_mm"] = float(self.min_zone_mm)
-        return out
+        return _finite_or_none(out)
+
+
+def _finite_or_none(value: Any) -> Any:
+    """NaN and inf (an undetermined standard deviation) become None: JSON has no NaN."""
+    if isinstance(value, dict):
+        return {k: _finite_or_none(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite_or_none(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)

@@ -375,3 +375,12 @@ def test_pcl_sac_plane_reference():
     coeffs = fit.normal / fit.d_mm
     assert np.allclose(coeffs, [-0.8964, -0.5868, -1.2080], atol=0.1), coeffs
     assert fit.n_inliers > 2000
+
+
+def test_json_of_a_minimal_fit_has_no_nan():
+    import json
+
+    fit = fit_plane([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # no dof left
+    assert fit
+    data = json.loads(json.dumps(fit.to_json(), allow_nan=False))
+    assert data["d_std_mm"] is None and data["n_inliers"] == 3
