@@ -746,7 +746,8 @@ def fit_sphere(
 
         def model(idx: NDArray) -> Any:
             s = sub[idx]
-            a = np.column_stack([2 * (s[1:] - s[0]), np.ones(3)])[:, :3]
+            # |p_i - c|^2 = |p_0 - c|^2  ->  2 (p_i - p_0) . c = |p_i|^2 - |p_0|^2
+            a = 2 * (s[1:] - s[0])
             b = np.einsum("ij,ij->i", s[1:], s[1:]) - s[0] @ s[0]
             if abs(np.linalg.det(a)) < 1e-9 * np.abs(a).max() ** 3:
                 return None
