@@ -44,32 +44,50 @@ CHESSBOARD = ChessboardTarget(inner_corners=(11, 8), square_mm=14.0)
 
 
 def spread_poses(cell, n: int, rng: np.random.Generator, max_tilt_deg: float = 45.0) -> list:
-    """``cam_from_target`` of n hand-held views whose centres spread over the whole image.
+    """``cam_from_target`` of n hand-held views spread over the image.
 
-    The target centre is put on the ray of a random pixel of the central 80 % of the image at
-    0.9-1.1 working distances, tilted up to ``max_tilt_deg`` about a random in-plane axis, any
-    in-plane rotation: the rings reach the image corners, as a calibration capture should.
+    The target centre goes on the ray of a random pixel at 0.9-1.1 working distances, tilted
+    up to ``max_tilt_deg`` about a random in-plane axis, any in-plane rotation; a pose is kept
+    only when both the whole chessboard (centred on the target's centre) and the whole
+    concentric target with its marker are inside the image with a 15 px margin, so both
+    targets are seen completely at the same poses and reach as far out as they can.
     """
+    from scanner.conventions import transform_points
+
     cam = cell.camera_model()
     w, h = cam.width, cam.height
     wd = cell.capture.working_distance_mm
-    poses = []
+    spec = cell.target_spec()
+    cols, rows = CHESSBOARD.inner_corners
+    half = np.array([(cols + 1) / 2, (rows + 1) / 2]) * CHESSBOARD.square_mm
+    outline = [np.array([sx * half[0], sy * half[1], 0.0]) for sx in (-1, 1) for sy in (-1, 1)]
+    r_out = (
+        max(
+            spec.radius_mm,
+            np.hypot(*spec.orientation_marker.center_mm) + spec.orientation_marker.diameter_mm,
+        )
+        if hasattr(spec, "radius_mm")
+        else 0.0
+    )
+    th = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+    outline += [np.array([r_out * np.cos(a), r_out * np.sin(a), 0.0]) for a in th]
+    outline_t = np.asarray(outline)
     face = Rotation.from_euler("x", 180, degrees=True)  # target z towards the camera
-    for i in range(n):
-        # stratify the image positions over a grid so every region is covered
-        gx, gy = i % 5, (i // 5) % 4
-        u = (0.1 + 0.8 * (gx + rng.uniform(0.2, 0.8)) / 5) * w
-        v = (0.1 + 0.8 * (gy + rng.uniform(0.2, 0.8)) / 4) * h
+    poses: list = []
+    while len(poses) < n:
+        u, v = rng.uniform(0, w), rng.uniform(0, h)
         ray = np.linalg.solve(cam.K, [u, v, 1.0])
         ray /= np.linalg.norm(ray)
-        # Align the target's normal with the viewing ray, then tilt and roll.
         align, _ = Rotation.align_vectors([[0, 0, 1.0]], [ray])
         tilt = np.radians(max_tilt_deg) * np.sqrt(rng.uniform(0.05, 1.0))
         az = rng.uniform(0, 2 * np.pi)
         tilt_rot = Rotation.from_rotvec(tilt * np.array([np.cos(az), np.sin(az), 0.0]))
         roll = Rotation.from_euler("z", rng.uniform(0, 360), degrees=True)
         rot = align.inv() * tilt_rot * face * roll
-        poses.append(make_transform(rot, ray * wd * rng.uniform(0.9, 1.1)))
+        pose = make_transform(rot, ray * wd * rng.uniform(0.9, 1.1))
+        pc = transform_points(pose, outline_t)
+        if np.all(pc[:, 2] > 0) and np.all(cam.in_image(cam.project(pc), 15.0)):
+            poses.append(pose)
     return poses
 
 
@@ -78,7 +96,7 @@ def render_views(cell_name: str, n: int, fresh: bool = False) -> tuple[list, lis
     from scanner.virtual_cell import load_cell, render_target_image
 
     cell = load_cell(cell_name)
-    cache = Path(tempfile.gettempdir()) / f"scanner_bench_intrinsics_{cell_name}_{n}"
+    cache = Path(tempfile.gettempdir()) / f"scanner_bench_intrinsics_v2_{cell_name}_{n}"
     cache.mkdir(parents=True, exist_ok=True)
     poses = spread_poses(cell, n, np.random.default_rng(2026))
     cols, rows = CHESSBOARD.inner_corners
@@ -129,7 +147,7 @@ def opencv_chessboard(images: list, size: tuple[int, int]) -> tuple[NDArray, NDA
     obj, img = [], []
     for im in images:
         found, corners = cv2.findChessboardCornersSB(
-            im, CHESSBOARD.inner_corners, flags=cv2.CALIB_CB_ACCURACY | cv2.CALIB_CB_EXHAUSTIVE
+            im, CHESSBOARD.inner_corners, flags=cv2.CALIB_CB_ACCURACY
         )
         if found:
             obj.append(CHESSBOARD.object_points().astype(np.float32))

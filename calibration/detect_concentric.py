@@ -801,7 +801,8 @@ def _label_by_marker(
         bgv = _sample(bg, inner[:, 0], inner[:, 1])
         vout = _sample(img, outer[:, 0], outer[:, 1])
         ref = max(float(np.median(vout)), float(np.median(bgv)) * 0.5, 1e-6)
-        scores.append(1.0 - float(np.median(vin)) / ref)
+        # Every point inside the disc must be dark (the brightest decides), around it paper.
+        scores.append(1.0 - float(np.max(vin)) / ref)
         candidates.append((a, cc, mc))
     sc = np.asarray(scores, dtype=np.float64)
     if np.all(np.isnan(sc)):
@@ -810,9 +811,12 @@ def _label_by_marker(
     others = np.delete(sc, best)
     if sc[best] < 0.3:
         return f"orientation marker not visible (darkest candidate contrast {sc[best]:.2f})"
-    if np.any(np.isnan(others)):
-        return "orientation marker ambiguous: a candidate position lies outside the image"
-    if np.nanmax(others) > 0.5 * sc[best]:
+    if np.any(np.isnan(others)) and sc[best] < 0.5:
+        return (
+            "orientation marker ambiguous: a weak candidate while another candidate position "
+            "lies outside the image"
+        )
+    if np.any(np.isfinite(others)) and np.nanmax(others) > 0.3 * sc[best]:
         return "orientation marker ambiguous: more than one dark disc where the marker may be"
     a, cc, mc = candidates[best]
     ix = 0 if min(np.linalg.norm(ends[0] - a, axis=1)) < 1e-6 else 1
