@@ -315,6 +315,27 @@ def _fit_parameters(fit: Any) -> str:
     return f"through {v3(fit.point_mm)} mm along {v3(fit.direction, 5)}"
 
 
+def _off_nominal(spec: Any, fit: Any) -> str:
+    """How far the fitted feature sits from its nominal: centre offset, axis/normal angle."""
+    if not fit:
+        return "-"
+    nom = spec.nominal
+    parts = []
+    if nom.center_mm is not None and hasattr(fit, "center_mm"):
+        offset = np.asarray(fit.center_mm) - np.asarray(nom.center_mm)
+        parts.append(f"centre {np.linalg.norm(offset):.3f} mm")
+    if nom.diameter_mm is not None and hasattr(fit, "radius_mm"):
+        parts.append(f"Ø {2 * fit.radius_mm - nom.diameter_mm:+.3f} mm")
+    direction = nom.normal if nom.normal is not None else nom.axis
+    if direction is not None:
+        got = getattr(fit, "normal", getattr(fit, "axis", getattr(fit, "direction", None)))
+        if got is not None:
+            d = np.asarray(direction, dtype=np.float64)
+            c = abs(float(np.asarray(got) @ d)) / float(np.linalg.norm(d))
+            parts.append(f"{math.degrees(math.acos(min(1.0, c))):.3f}°")
+    return ", ".join(parts) or "-"
+
+
 def _features_table(report: Any) -> str:
     rows = []
     for f in report.features:
@@ -326,14 +347,15 @@ def _features_table(report: Any) -> str:
                 int(f.region_indices.size),
                 fit.n_inliers if fit else 0,
                 _fit_parameters(fit),
+                _off_nominal(f.spec, fit),
                 fit.rms_mm * 1000 if fit else None,
                 fit.range_mm * 1000 if fit else None,
                 fit.min_zone_mm * 1000 if fit and fit.min_zone_mm is not None else None,
             ]
         )
     return rep.table(
-        ["Feature", "Kind", "Region pts", "Inliers", "Fitted geometry", "RMS µm", "Range µm",
-         "Min zone µm"],
+        ["Feature", "Kind", "Region pts", "Inliers", "Fitted geometry", "Off nominal",
+         "RMS µm", "Range µm", "Min zone µm"],
         rows,
         decimals=1,
     )  # fmt: skip
