@@ -332,11 +332,11 @@ def _measure(
     idx = c
     idx += (lines * W)[:, None]
     vals = flat.take(idx)
+    vals = vals.astype(np.float32)
+    ones = np.ones(2 * hw + 1, np.float32)
     counts = None
     if count_above is not None:
-        core_raw = vals[:, 2:-2]
-        counts = np.count_nonzero(core_raw > count_above, axis=1)
-    vals = vals.astype(np.float32)
+        counts = (vals[:, 2:-2] > count_above).astype(np.float32) @ ones
     peak = vals[:, hw + 2].copy()
 
     # Linear background from two flank pixels each side (a missing side: the other one, flat).
@@ -363,7 +363,7 @@ def _measure(
         border[near] = ~np.all(core_in, axis=1)
     contrast = peak - mean
 
-    sw = w.sum(axis=1)
+    sw = w @ ones
     ok = sw > 0
     safe = np.where(ok, sw, 1.0)
     mu = (w @ xc) / safe
@@ -373,11 +373,23 @@ def _measure(
     flags = np.zeros(len(cols), np.uint8)
 
     # A second maximum inside the window (a reflection or another segment a few pixels away)
-    # would pull the centre of gravity between the two: measure those on the peak alone.
-    inner = w[:, 1:-1]
-    level = (0.3 * np.maximum(contrast, 0.0))[:, None]
-    local_max = (inner > w[:, :-2]) & (inner >= w[:, 2:]) & (inner > level)
-    double = np.count_nonzero(local_max, axis=1) > 1
+    # would pull the centre of gravity between the two: measure those on the peak alone. Only
+    # windows wider than usual can hold two maxima, so only those are searched.
+    double = np.zeros(len(cols), bool)
+    if len(cols) > 2:
+        typical = np.partition(width, width.size // 2)[width.size // 2]
+        wide = np.flatnonzero(width > 1.3 * typical)
+        if wide.size:
+            ww = w[wide]
+            inner = ww[:, 1:-1]
+            level = (0.3 * np.maximum(contrast[wide], 0.0))[:, None]
+            local_max = (inner > ww[:, :-2]) & (inner >= ww[:, 2:]) & (inner > level)
+            double[wide] = np.count_nonzero(local_max, axis=1) > 1
+    else:
+        inner = w[:, 1:-1]
+        level = (0.3 * np.maximum(contrast, 0.0))[:, None]
+        local_max = (inner > w[:, :-2]) & (inner >= w[:, 2:]) & (inner > level)
+        double = np.count_nonzero(local_max, axis=1) > 1
     if np.any(double):
         flags[double] |= np.uint8(StripeFlag.AMBIGUOUS)
 
@@ -530,14 +542,27 @@ def _primary_and_secondary(img: NDArray, options: StripeOptions, noise: float, h
     peaks = _Peaks.concat(parts)
 
     # Contrast thresholds: noise, absolute, and relative to the line's brightest peak.
-    best = np.zeros(H, np.float32)
-    np.maximum.at(best, peaks.line, peaks.contrast)
+    best = _line_max(peaks.line, peaks.contrast, H)
     keep = (peaks.contrast >= thr_contrast) & (
         peaks.contrast >= options.min_relative_peak * best[peaks.line]
     )
     peaks = peaks.take(np.flatnonzero(keep))
-    peaks = _dedupe(peaks, hw)
+    if len(parts) > 1:
+        peaks = _dedupe(peaks, hw)
     return peaks
+
+
+def _line_max(line: NDArray, value: NDArray, n_lines: int) -> NDArray:
+    """Per-line maximum of ``value`` (0 where a line has none); fast when lines are unique."""
+    best = np.zeros(n_lines, np.float32)
+    if line.size and np.all(line[1:] > line[:-1]):
+        best[line] = value
+        return best
+    order = np.lexsort((value, line))
+    last = np.ones(line.size, bool)
+    last[:-1] = line[order][1:] != line[order][:-1]
+    best[line[order][last]] = value[order][last]
+    return best
 
 
 def _secondary_peaks(
@@ -635,8 +660,7 @@ def _resolve_multi(peaks: _Peaks, options: StripeOptions) -> _Peaks:
     if not np.any(multi_line):
         return peaks
     labels = _segments(peaks, options.link_px)
-    best = np.zeros(counts.size, np.float32)
-    np.maximum.at(best, peaks.line, peaks.contrast)
+    best = _line_max(peaks.line, peaks.contrast, counts.size)
     is_best = peaks.contrast >= best[peaks.line]
     ratio = peaks.contrast / np.maximum(best[peaks.line], 1e-6)
     # A segment is a reflection when none of its peaks is alone on its line and each stays
@@ -684,21 +708,29 @@ def _refine_precise(img: NDArray, peaks: _Peaks, sigma: float) -> tuple[NDArray,
     c0 = np.rint(pos).astype(np.int64)
     delta = pos - c0
     j = np.arange(-R, R + 1)
-    rows = peaks.line[:, None] + j[None, :]
-    cols = c0[:, None] + j[None, :]
-    rows_in = np.all((rows >= 0) & (rows < H), axis=1)
-    cols_in = np.all((cols >= 0) & (cols < W), axis=1)
-    rc = np.clip(rows, 0, H - 1)
-    cc = np.clip(cols, 0, W - 1)
-    flat = img.reshape(-1)
-    patch = flat.take(rc[:, :, None] * W + cc[:, None, :]).astype(np.float32)  # (n, P, P)
+    line = peaks.line
+    rows_in = (line >= R) & (line < H - R)
+    cols_in = (c0 >= R) & (c0 < W - R)
+    # One broadcast index per patch; rows or columns past the border are clamped by ``clip``
+    # (their points fall back to the 1-D estimate or keep the fast one, below).
+    offsets = (j[:, None] * W + j[None, :]).astype(np.int64)
+    idx = (line * W + c0)[:, None, None] + offsets[None, :, :]
+    patch = img.reshape(-1).take(idx, mode="clip").astype(np.float32)  # (n, P, P)
 
     # Kernels along the line evaluated at the fast estimate: (I * g')(pos) = sum I(c) g'(pos - c).
-    g0, g1, g2 = _gauss_kernels(delta[:, None] - j[None, :], sigma)
+    x = (delta[:, None] - j[None, :]).astype(np.float32)
+    inv_s2 = np.float32(1.0 / sigma**2)
+    g0 = np.exp(np.float32(-0.5) * inv_s2 * x * x)
     g0 /= g0.sum(axis=1, keepdims=True)
-    ku = np.stack([g0, g1, g2], axis=2).astype(np.float32)  # (n, P, 3)
-    kv0, kv1, kv2 = (k.astype(np.float32) for k in _gauss_kernels(-j.astype(np.float64), sigma))
-    kv0 = kv0 / kv0.sum()
+    ku = np.empty((n, j.size, 3), np.float32)
+    ku[:, :, 0] = g0
+    ku[:, :, 1] = -x * inv_s2 * g0
+    ku[:, :, 2] = (x * x * inv_s2 - 1.0) * inv_s2 * g0
+    # Across the lines: the same sampled derivatives, all scaled by one factor (as along the
+    # line), so that the Hessian's mixed and pure terms compare.
+    kv0, kv1, kv2 = _gauss_kernels(-j.astype(np.float64), sigma)
+    scale = 1.0 / kv0.sum()
+    kv0, kv1, kv2 = (np.float32(scale) * k.astype(np.float32) for k in (kv0, kv1, kv2))
     # Contract along u (last axis) with the three per-point kernels, then along v.
     a = patch @ ku  # (n, P rows, 3)
     a0, a1, a2 = a[:, :, 0], a[:, :, 1], a[:, :, 2]
