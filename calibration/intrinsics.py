@@ -376,21 +376,44 @@ class _Problem:
             )
 
         r0 = res(x9, R, t)
-        J = np.zeros((self.n_res, x.size))
         views = self.residual_views()
-        rows = np.arange(self.n_res)
         _, D = _project(x9, R[d.view], t[d.view], pts, parts=True)
         nc = int(curve.sum())
-        J[:nc, :9] = -np.einsum("pij,pi->pj", D[curve], nrm[curve])
-        J[nc:, :9] = -D[point].reshape(-1, 9)
+        Ji = np.empty((self.n_res, 9))
+        Ji[:nc] = -np.einsum("pij,pi->pj", D[curve], nrm[curve])
+        Ji[nc:] = -D[point].reshape(-1, 9)
+        Jp = np.empty((self.n_res, 6))
         poses = x[9:].reshape(self.n_views, 6)
         for k in range(6):
             pp = poses.copy()
             hk = np.abs(pp[:, k]) * 1e-7 + 1e-7
             pp[:, k] += hk
             Rk = Rotation.from_rotvec(pp[:, :3]).as_matrix() if k < 3 else R
-            J[rows, 9 + views * 6 + k] = (res(x9, Rk, pp[:, 3:]) - r0) / hk[views]
-        return J
+            Jp[:, k] = (res(x9, Rk, pp[:, 3:]) - r0) / hk[views]
+        return Ji, Jp, views
+
+    def normal_equations(self, x: NDArray, r: NDArray, w: NDArray) -> tuple[NDArray, NDArray]:
+        """``J^T W J`` and ``J^T W r`` assembled block by block (each view's pose touches only
+        its own residuals), never forming the dense Jacobian."""
+        Ji, Jp, views = self.jacobian(x)
+        n = x.size
+        A = np.zeros((n, n))
+        g = np.zeros(n)
+        wJi = Ji * w[:, None]
+        A[:9, :9] = Ji.T @ wJi
+        g[:9] = wJi.T @ r
+        order = np.argsort(views, kind="stable")
+        bounds = np.searchsorted(views[order], np.arange(self.n_views + 1))
+        for v in range(self.n_views):
+            idx = order[bounds[v] : bounds[v + 1]]
+            sl = slice(9 + 6 * v, 15 + 6 * v)
+            Jpv = Jp[idx]
+            wv = w[idx]
+            A[sl, sl] = Jpv.T @ (Jpv * wv[:, None])
+            A[:9, sl] = wJi[idx].T @ Jpv
+            A[sl, :9] = A[:9, sl].T
+            g[sl] = Jpv.T @ (wv * r[idx])
+        return A, g
 
 
 def _initial_psi(data: _Data, K: NDArray, poses: NDArray) -> None:
@@ -507,10 +530,8 @@ def _levenberg_marquardt(
     c = cost(r)
     lam = 1e-3
     for it in range(max_iter):
-        J = prob.jacobian(x)
         w = 1.0 / np.sqrt(1.0 + (r / f_scale) ** 2)
-        A = J.T @ (J * w[:, None])
-        g = J.T @ (w * r)
+        A, g = prob.normal_equations(x, r, w)
         dA = np.maximum(np.diag(A), 1e-300)
         improved = False
         for _ in range(12):
@@ -705,7 +726,7 @@ def calibrate_intrinsics(
     cam_from_target = [make_transform(Rotation.from_rotvec(p[:3]), p[3:]) for p in poses]
 
     # -- uncertainty
-    J = prob.jacobian(x)
+    JtJ, _ = prob.normal_equations(x, res, np.ones(len(res)))
     dof = max(len(res) - x.size, 1)
     sigma2 = float(np.sum(res**2) / dof)
     std: dict[str, float] = {}
@@ -714,7 +735,7 @@ def calibrate_intrinsics(
         free = np.ones(x.size, bool)
         free[[PARAM_NAMES.index(n) for n in fixed]] = False
         cov = np.zeros((x.size, x.size))
-        cov[np.ix_(free, free)] = np.linalg.inv((J.T @ J)[np.ix_(free, free)]) * sigma2
+        cov[np.ix_(free, free)] = np.linalg.inv(JtJ[np.ix_(free, free)]) * sigma2
         c9 = cov[:9, :9]
         sd = np.sqrt(np.maximum(np.diag(c9), 0))
         std = {n: float(v) for n, v in zip(PARAM_NAMES, sd)}

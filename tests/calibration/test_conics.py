@@ -73,7 +73,7 @@ def test_harmonic_conjugate_gives_vanishing_point():
 
 def test_line_conic_intersections_and_line_fit():
     H = _homography()
-    pts, C = _circle_image(H, 50.0)
+    _pts, C = _circle_image(H, 50.0)
 
     def img(p):
         x = H @ [p[0], p[1], 1.0]
