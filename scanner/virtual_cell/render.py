@@ -48,7 +48,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 _CHUNK = 1 << 18
-_BAND_SIGMAS = 6.0
+_BAND_SIGMAS = 4.5  # exp(-4.5**2 / 2) = 4e-5 of the peak: below a grey level
 
 
 @dataclass(frozen=True)
@@ -175,8 +175,9 @@ def _shade(
 ) -> tuple[NDArray, NDArray, NDArray, NDArray]:
     """Shade rays through undistorted normalised coordinates ``xy`` (N, 2).
 
-    Returns ambient radiance, laser radiance, surface index (-1: nothing) and "needs
-    supersampling" (an edge or the laser band within the pixel footprint), each ``(N,)``.
+    Returns ambient radiance, laser radiance, surface index (-1: nothing), "needs
+    supersampling" (an edge or the laser band within the pixel footprint) and "in the laser
+    band", each ``(N,)``.
     """
     n = len(xy)
     rot = scene.world_from_cam[:3, :3]
@@ -209,9 +210,10 @@ def _shade(
         band_mm = _BAND_SIGMAS * laser.sigma_mm
         f = (laser.normal @ origin + laser.d) + t * (dirs @ laser.normal)
         cand |= hit & (np.abs(f) < band_mm + 10.0 * px_mm)
+    band = np.zeros(n, dtype=bool)
     c = np.flatnonzero(cand)
     if not len(c):
-        return amb, las, idx, need
+        return amb, las, idx, need, band
     d_c = dirs[c]
     p = origin + d_c * t[c, None]
     normals = np.empty((len(c), 3))
@@ -229,7 +231,9 @@ def _shade(
             s_mm = f_c / sin_cut
         else:
             s_mm = f_c
-        need_c |= np.abs(s_mm) < band_mm + footprint
+        near = np.abs(s_mm) < band_mm + footprint
+        need_c |= near
+        band[c] = near
         b = np.flatnonzero(np.abs(s_mm) < band_mm)
         if len(b):
             pb = p[b]
@@ -242,7 +246,97 @@ def _shade(
                 laser.power * rel[c[b]] * cos_in * (laser.reference_distance_mm / r) * profile * lit
             )
     need[c] = need_c
-    return amb, las, idx, need
+    return amb, las, idx, need, band
+
+
+def _supersample(
+    scene: Scene,
+    laser: Laser | None,
+    rmap: NDArray,
+    pixels: NDArray,
+    width: int,
+    n: int,
+    ambient: float,
+    focal: float,
+) -> tuple[NDArray, NDArray]:
+    """Mean ambient and laser radiance over ``n*n`` samples in each of ``pixels`` (flat ids)."""
+    offsets = _sample_offsets(n)
+    amb = np.empty(len(pixels))
+    las = np.empty(len(pixels))
+    per_chunk = max(1, _CHUNK // len(offsets))
+    for s in range(0, len(pixels), per_chunk):
+        pix = pixels[s : s + per_chunk]
+        u = pix % width + 1
+        v = pix // width + 1
+        centre = rmap[v, u]
+        ju = (rmap[v, u + 1] - rmap[v, u - 1]) / 2
+        jv = (rmap[v + 1, u] - rmap[v - 1, u]) / 2
+        # Local affine model of the lens over one pixel (its curvature is negligible there).
+        xy = (
+            centre[:, None, :]
+            + ju[:, None, :] * offsets[None, :, :1]
+            + jv[:, None, :] * offsets[None, :, 1:]
+        ).reshape(-1, 2)
+        a, l_, _, _, _ = _shade(scene, laser, xy, ambient, focal)
+        amb[s : s + per_chunk] = a.reshape(len(pix), -1).mean(axis=1)
+        las[s : s + per_chunk] = l_.reshape(len(pix), -1).mean(axis=1)
+    return amb, las
+
+
+def _vignetting(imaging: ImagingConfig, xy: NDArray) -> NDArray:
+    c2 = 1.0 / (1.0 + np.einsum("ij,ij->i", xy, xy))
+    return (1.0 - imaging.vignetting) + imaging.vignetting * c2 * c2
+
+
+def render_radiance_coarse_ambient(
+    camera: CameraConfig,
+    imaging: ImagingConfig,
+    scene: Scene,
+    ambient: float,
+    laser: Laser,
+    step: int = 2,
+) -> tuple[NDArray, NDArray]:
+    """Like :func:`render_radiance`, faster, for laser images whose ambient light is dim.
+
+    The scene is shaded every ``step`` pixels and the (dim) ambient image interpolated in
+    between; every pixel near the laser line is shaded fully, with supersampling. The laser
+    light is exactly as in :func:`render_radiance`; the ambient light loses detail finer than
+    ``step`` pixels (a few grey levels at silhouettes, under the noise of a laser image).
+    """
+    w, h = camera.width, camera.height
+    rmap = ray_map(camera)
+    wc, hc = (w + step - 1) // step, (h + step - 1) // step
+    centres = rmap[1 : h + 1 : step, 1 : w + 1 : step].reshape(-1, 2)
+    focal = float(min(camera.fx, camera.fy))
+    amb_c = np.empty(len(centres))
+    band_c = np.empty(len(centres), dtype=bool)
+    for s in range(0, len(centres), _CHUNK):
+        sl = slice(s, s + _CHUNK)
+        amb_c[sl], _, _, _, band_c[sl] = _shade(scene, laser, centres[sl], ambient, focal)
+    to_full = np.array([[1.0 / step, 0.0, 0.0], [0.0, 1.0 / step, 0.0]])
+    amb = (
+        cv2.warpAffine(
+            amb_c.reshape(hc, wc).astype(np.float32),
+            to_full,
+            (w, h),
+            flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+            borderMode=cv2.BORDER_REPLICATE,
+        )
+        .ravel()
+        .astype(np.float64)
+    )
+    band = cv2.dilate(band_c.reshape(hc, wc).astype(np.uint8), np.ones((3, 3), np.uint8))
+    band = np.repeat(np.repeat(band, step, axis=0), step, axis=1)[:h, :w]
+    todo = np.flatnonzero(band.ravel())
+    las = np.zeros(w * h)
+    if len(todo):
+        amb[todo], las[todo] = _supersample(
+            scene, laser, rmap, todo, w, max(imaging.supersample, 1), ambient, focal
+        )
+    vig = _vignetting(imaging, rmap[1:-1, 1:-1].reshape(-1, 2))
+    return (amb * vig).reshape(h, w).astype(np.float32), (las * vig).reshape(h, w).astype(
+        np.float32
+    )
 
 
 def render_radiance(
@@ -278,7 +372,7 @@ def render_radiance(
     need = np.empty(w * h, dtype=bool)
     for s in range(0, w * h, _CHUNK):
         sl = slice(s, s + _CHUNK)
-        amb[sl], las[sl], idx[sl], need[sl] = _shade(scene, laser, centres[sl], ambient, focal)
+        amb[sl], las[sl], idx[sl], need[sl], _ = _shade(scene, laser, centres[sl], ambient, focal)
     idx2 = idx.reshape(h, w)
     sil = np.zeros((h, w), dtype=bool)
     dv = idx2[1:, :] != idx2[:-1, :]
@@ -288,29 +382,12 @@ def render_radiance(
     sil[:, 1:] |= du
     sil[:, :-1] |= du
     todo = np.flatnonzero(need | sil.ravel())
-    n = imaging.supersample
-    if n > 1 and len(todo):
-        offsets = _sample_offsets(n)
-        per_chunk = max(1, _CHUNK // len(offsets))
-        for s in range(0, len(todo), per_chunk):
-            pix = todo[s : s + per_chunk]
-            u = pix % w + 1
-            v = pix // w + 1
-            centre = rmap[v, u]
-            ju = (rmap[v, u + 1] - rmap[v, u - 1]) / 2
-            jv = (rmap[v + 1, u] - rmap[v - 1, u]) / 2
-            # Local affine model of the lens over one pixel (its curvature is negligible there).
-            xy = (
-                centre[:, None, :]
-                + ju[:, None, :] * offsets[None, :, :1]
-                + jv[:, None, :] * offsets[None, :, 1:]
-            ).reshape(-1, 2)
-            a, l_, _, _ = _shade(scene, laser, xy, ambient, focal)
-            amb[pix] = a.reshape(len(pix), -1).mean(axis=1)
-            las[pix] = l_.reshape(len(pix), -1).mean(axis=1)
+    if imaging.supersample > 1 and len(todo):
+        amb[todo], las[todo] = _supersample(
+            scene, laser, rmap, todo, w, imaging.supersample, ambient, focal
+        )
     log.debug("supersampled %d of %d pixels", len(todo), w * h)
-    c2 = 1.0 / (1.0 + np.einsum("ij,ij->i", centres, centres))
-    vig = (1.0 - imaging.vignetting) + imaging.vignetting * c2 * c2
+    vig = _vignetting(imaging, centres)
     amb = (amb * vig).reshape(h, w).astype(np.float32)
     las = (las * vig).reshape(h, w).astype(np.float32)
     return amb, las

@@ -32,6 +32,7 @@ from scanner.targets import ConcentricCirclesTarget, TargetSpec
 from scanner.virtual_cell.capture import (
     hand_held_scene,
     posed_target_scene,
+    render_image_pair,
     render_scene_image,
     sweep_scene,
 )
@@ -212,7 +213,7 @@ class _Job:
     out: Path
     target: TargetSpec
     concentric_from_printed: NDArray
-    write_16bit: bool
+    fast_sweep: bool = True
 
 
 def _scene(job: _Job) -> Scene:
@@ -237,16 +238,21 @@ def _render(job: _Job) -> tuple[str, int, NDArray, NDArray, NDArray, tuple[str, 
     p, cell = job.plan, job.cell
     rng = np.random.default_rng(p.seed)
     scene = _scene(job)
-    if p.target_image:
-        img = render_scene_image(cell, scene, rng, laser=False)
-        _write_png(job.out / p.session / "images" / f"target_{p.id:04d}.png", img)
     uv = np.zeros((0, 2))
     sid = np.zeros(0, dtype=np.int32)
     pts = np.zeros((0, 3))
     ids: tuple[str, ...] = ()
+    images = job.out / p.session / "images"
+    if p.target_image and p.laser_image:
+        target_img, laser_img = render_image_pair(cell, scene, rng)
+        _write_png(images / f"target_{p.id:04d}.png", target_img)
+        _write_png(images / f"laser_{p.id:04d}.png", laser_img)
+    elif p.target_image:
+        _write_png(images / f"target_{p.id:04d}.png", render_scene_image(cell, scene, rng, False))
+    elif p.laser_image:
+        img = render_scene_image(cell, scene, rng, True, coarse_ambient=job.fast_sweep)
+        _write_png(images / f"laser_{p.id:04d}.png", img)
     if p.laser_image:
-        img = render_scene_image(cell, scene, rng, laser=True)
-        _write_png(job.out / p.session / "images" / f"laser_{p.id:04d}.png", img)
         st = stripe_truth(cell.camera, scene, Laser.from_cell(cell, scene.world_from_cam))
         uv, sid, pts, ids = st.uv, st.surface, st.points_world, st.surface_ids
     return p.session, p.id, uv, sid, pts, ids
@@ -342,6 +348,7 @@ def simulate_cell(
     workers: int = 2,
     sessions: tuple[str, ...] = ("calibration", "check", "sweep"),
     progress: bool = False,
+    fast_sweep: bool = True,
 ) -> CellTruth:
     """Render the cell's calibration, check and sweep sessions and write the truth.
 
@@ -366,6 +373,9 @@ def simulate_cell(
         Which sessions to write.
     progress : bool
         Show a progress bar on standard error.
+    fast_sweep : bool
+        Render sweep images with the dim ambient light shaded every other pixel (the laser
+        line exactly): about three times faster; False shades every pixel fully.
 
     Returns
     -------
@@ -378,11 +388,7 @@ def simulate_cell(
     plans = plan_cell(cell, seed, sweep_frames)
     plans = {k: v for k, v in plans.items() if k in sessions}
     ray_map(cell.camera)  # compute once before the workers fork
-    jobs = [
-        _Job(cell, p, out, spec, c_from_p, cell.camera.bit_depth == 16)
-        for name in plans
-        for p in plans[name]
-    ]
+    jobs = [_Job(cell, p, out, spec, c_from_p, fast_sweep) for name in plans for p in plans[name]]
     stripes: dict[str, list[tuple]] = {name: [] for name in plans}
     bar = tqdm(
         total=len(jobs),
