@@ -653,7 +653,7 @@ def _segments(peaks: _Peaks, link_px: float) -> NDArray:
 def _resolve_multi(peaks: _Peaks, options: StripeOptions) -> _Peaks:
     """Drop reflections, flag ambiguity and secondary segments on lines with several peaks."""
     n = peaks.line.size
-    if n < 2:
+    if n < 2 or np.all(peaks.line[1:] > peaks.line[:-1]):  # one peak per line: nothing to do
         return peaks
     counts = np.bincount(peaks.line)
     multi_line = counts[peaks.line] > 1
@@ -870,7 +870,7 @@ def extract_stripe(
             noise,
         )
     if peaks.line.size >= 4:
-        typical = float(np.median(peaks.contrast))
+        typical = float(np.partition(peaks.contrast, peaks.line.size // 2)[peaks.line.size // 2])
         low = peaks.contrast < opts.low_contrast_ratio * typical
         peaks.flags[low] |= np.uint8(StripeFlag.LOW_CONTRAST)
 
@@ -883,7 +883,10 @@ def extract_stripe(
             sigma = float(np.clip(np.median(peaks.width) / _FWHM_PER_SIGMA, 1.0, 3.0))
         pos, voff = _refine_precise(work, peaks, sigma)
         across = across + voff
-    order = np.lexsort((pos, peaks.line))
+    if np.all(peaks.line[1:] > peaks.line[:-1]):
+        order = slice(None)
+    else:
+        order = np.lexsort((pos, peaks.line))
     if orientation == "rows":
         u, v = pos[order], across[order]
     else:
