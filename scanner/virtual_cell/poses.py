@@ -184,13 +184,16 @@ def aimed_view(
     rng: np.random.Generator,
     point_t: NDArray,
     tilt_range_deg: tuple[float, float] = (5.0, 30.0),
+    ring_crossings_in_view: bool = False,
 ) -> NDArray:
     """A view whose light plane contains the target point ``point_t`` (e.g. O, A or C).
 
     The orientation is random (tilt in ``tilt_range_deg``, any roll); the translation puts the
     point on the light plane at a random place of the stripe in view; the centre O stays in view.
+    ``ring_crossings_in_view`` also keeps the points E, F where the stripe meets the largest
+    ring in view (the EF check).
     """
-    centre, _ = target_extent_mm(cell.target_spec())
+    centre, radius = target_extent_mm(cell.target_spec())
     lo, hi = tilt_range_deg
     point_t = np.asarray(point_t, dtype=np.float64)
     for _ in range(_MAX_TRIES):
@@ -200,7 +203,13 @@ def aimed_view(
         rot = _look_from(pos, np.zeros(3), rng.uniform(-np.pi, np.pi))[:3, :3]
         q = _point_on_plane(cell, rng, 0.3)
         c_t = make_transform(rot, q - rot @ point_t)
-        if _in_view(cell, c_t, np.vstack([centre, point_t]), 40.0):
+        needed = [centre, point_t]
+        if ring_crossings_in_view:
+            n_t = rot.T @ cell.laser.normal
+            along = np.array([n_t[1], -n_t[0], 0.0])
+            along /= np.linalg.norm(along)
+            needed += [centre + radius * along, centre - radius * along]
+        if _in_view(cell, c_t, np.vstack(needed), 40.0):
             return c_t
     raise RuntimeError("aimed_view: no acceptable view found")
 

@@ -177,7 +177,13 @@ def plan_cell(
                 posed("calibration", len(calib), "aim", aim, aimed_view(cell, rng, named[aim]))
             )
     check = [
-        posed("check", k, "check", "O", aimed_view(cell, rng, named["O"], (5.0, 35.0)))
+        posed(
+            "check",
+            k,
+            "check",
+            "O",
+            aimed_view(cell, rng, named["O"], (5.0, 35.0), ring_crossings_in_view=True),
+        )
         for k in range(cap.check_frames)
     ]
     b_cams, _ = sweep_poses(cell, sweep_frames)

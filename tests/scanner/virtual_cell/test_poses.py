@@ -119,3 +119,16 @@ def test_sweep_is_linear_and_crosses_the_line_over_the_centre(name):
     # The camera looks down onto the table from the standoff.
     assert mid[2, 2] == pytest.approx(-1.0)
     assert mid[2, 3] - cell.sweep.table_z_mm == pytest.approx(cell.sweep.standoff_mm)
+
+
+def test_check_rows_keep_e_and_f_in_view(planned):
+    cell, plans = planned
+    spec = cell.target_spec()
+    cam = cell.camera_model()
+    b_t = cell.robot.base_from_target()
+    for p in plans["check"]:
+        c_t = invert_transform(p.base_from_cam_true) @ b_t
+        n_t = c_t[:3, :3].T @ cell.laser.normal
+        along = np.array([n_t[1], -n_t[0], 0.0]) / np.hypot(n_t[0], n_t[1])
+        ef = np.array([along, -along]) * spec.radius_mm
+        assert np.all(cam.in_image(cam.project(transform_points(c_t, ef))))
