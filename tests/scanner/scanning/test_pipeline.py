@@ -165,6 +165,15 @@ def test_other_formats_by_extension(sweep, tmp_path, ext):
     )
     if ext == ".pcd":
         assert json.loads((tmp_path / "cloud.pcd.json").read_text())["units"] == "mm"
+    else:
+        import pye57
+
+        e57 = pye57.E57(str(out))
+        try:
+            record = json.loads(e57.data3d[0]["sensorSoftwareVersion"].value())
+        finally:
+            e57.close()
+        assert record["calibration"] == str(cal_path.resolve())
 
 
 def test_filters_voxel_outliers_normals(dense_sweep, tmp_path):
