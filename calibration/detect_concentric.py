@@ -87,6 +87,20 @@ def _darkness(img: NDArray, kernel_px: int) -> tuple[NDArray, NDArray]:
     return np.clip(d, 0.0, 1.0).astype(np.float64), bg.astype(np.float64)
 
 
+def _bright_mask(img: NDArray, kernel_px: int) -> NDArray:
+    """1 where the image is clearly brighter than the paper around it (laser stripe, glare).
+
+    The paper level is a median over a window wider than thin lines, bright or dark.
+    """
+    k = max(int(kernel_px) * 2 + 1, 15) | 1
+    scale = 255.0 / max(float(img.max()), 1e-6)
+    u8 = np.clip(img * scale, 0, 255).astype(np.uint8)
+    paper = cv2.medianBlur(u8, min(k, 255)).astype(np.float64) / scale
+    bright = img > paper * 1.12 + 0.02 * float(np.median(paper))
+    bright = cv2.dilate(bright.astype(np.uint8), np.ones((3, 3), np.uint8))
+    return bright.astype(np.float64)
+
+
 def _noise_threshold(d: NDArray) -> float:
     med = float(np.median(d))
     mad = float(np.median(np.abs(d - med))) * 1.4826
@@ -220,6 +234,7 @@ def _locate_centres(
     half_window: float,
     search: float,
     step: float,
+    bright: NDArray | None = None,
 ) -> tuple[NDArray, NDArray, NDArray]:
     """Sub-pixel centre of a dark line near each of ``points`` along its ``normals``.
 
@@ -256,6 +271,10 @@ def _locate_centres(
     )
     contrast = peak - base
     ok = np.isfinite(c) & (np.abs(c) < search) & (contrast > 0)
+    if bright is not None:
+        # A profile touching something brighter than the paper (laser stripe, glare) is biased.
+        hit = ndimage.map_coordinates(bright, [v.ravel(), u.ravel()], order=0, mode="constant")
+        ok &= ~hit.reshape(u.shape).any(axis=1)
     return c, contrast, ok
 
 
@@ -411,6 +430,7 @@ def detect_concentric(
     if kernel2 != kernel:
         d, bg = _darkness(img, kernel2)
     coef = ndimage.spline_filter(d, order=3)
+    bright = _bright_mask(img, kernel2)
 
     # -- sub-pixel rings
     axis_lines = [l1 / np.linalg.norm(l1[:2]), l2 / np.linalg.norm(l2[:2])]
@@ -422,7 +442,17 @@ def detect_concentric(
         dirs = np.column_stack([np.cos(angles), np.sin(angles)])
         for k in sorted(conics):
             res = _refine_ring(
-                coef, conics[k], c, dirs, angles, axis_lines, half_window, spacing_px, s, (w, h)
+                coef,
+                conics[k],
+                c,
+                dirs,
+                angles,
+                axis_lines,
+                half_window,
+                spacing_px,
+                s,
+                (w, h),
+                bright,
             )
             if res is not None:
                 rings[k] = res
@@ -443,7 +473,7 @@ def detect_concentric(
             )
         c = c_new
         # Refine the diameter lines from the rings' geometry.
-        axis_res = _refine_axes(coef, axis_lines, c, conics, radii, half_window, (w, h))
+        axis_res = _refine_axes(coef, axis_lines, c, conics, radii, half_window, (w, h), bright)
         if axis_res is None:
             return TargetObservation.failed(
                 "diameter lines not measurable between the rings", size, KIND
@@ -609,6 +639,7 @@ def _refine_ring(
     spacing_px: float,
     s: ConcentricDetectorSettings,
     size: tuple[int, int],
+    bright: NDArray | None = None,
 ) -> tuple[NDArray, NDArray, NDArray] | None:
     """Sub-pixel centre-line points of one ring and its refitted conic."""
     w, h = size
@@ -632,7 +663,9 @@ def _refine_ring(
         return None
     normals = _conic_normals(conic, pts)
     search = max(1.0, min(0.3 * spacing_px, 3.0 * half_window))
-    off, contrast, good = _locate_centres(coef, pts, normals, half_window, search, s.ray_step_px)
+    off, contrast, good = _locate_centres(
+        coef, pts, normals, half_window, search, s.ray_step_px, bright
+    )
     med = np.median(contrast[good]) if good.any() else 0.0
     good &= contrast > 0.5 * med
     found = pts + off[:, None] * normals
@@ -664,6 +697,7 @@ def _refine_axes(
     radii: NDArray,
     half_window: float,
     size: tuple[int, int],
+    bright: NDArray | None = None,
 ) -> tuple[list[NDArray], list[NDArray]] | None:
     """Sub-pixel points on both diameter lines, between the rings; refitted lines."""
     w, h = size
@@ -705,7 +739,7 @@ def _refine_axes(
             return None
         normals = np.tile(ln[:2], (len(pts), 1))
         off, contrast, good = _locate_centres(
-            coef, pts, normals, half_window, max(1.0, 2 * half_window), 0.125
+            coef, pts, normals, half_window, max(1.0, 2 * half_window), 0.125, bright
         )
         med = np.median(contrast[good]) if good.any() else 0.0
         good &= contrast > 0.5 * med
