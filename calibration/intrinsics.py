@@ -500,8 +500,16 @@ def _opencv_init(
 
 
 def _view_tilts_deg(poses: NDArray) -> NDArray:
+    """Angle between each view's target normal and its line of sight to the target origin.
+
+    A target facing the camera along the line of sight is as uninformative about the focal
+    length as a fronto-parallel one, wherever it is in the image.
+    """
     R = Rotation.from_rotvec(poses[:, :3]).as_matrix()
-    return np.degrees(np.arccos(np.clip(np.abs(R[:, 2, 2]), 0, 1)))
+    normal = R[:, :, 2]
+    sight = poses[:, 3:] / np.linalg.norm(poses[:, 3:], axis=1, keepdims=True)
+    cosang = np.abs(np.einsum("ij,ij->i", normal, sight))
+    return np.degrees(np.arccos(np.clip(cosang, 0, 1)))
 
 
 @dataclass

@@ -157,9 +157,8 @@ def test_default_rejects_an_outlier_view_with_a_reason():
     rng = np.random.default_rng(3)
     obs = [synthetic_observation(T, K_TRUE, DIST_TRUE, rng, 0.03) for T in poses(8, rng)]
     bad = obs[5]
-    for ring in bad.rings:  # a view whose rings were mislabelled / scaled
-        c = ring.edge_points_px.mean(axis=0)
-        ring.edge_points_px = c + 1.02 * (ring.edge_points_px - c)
+    for k, ring in enumerate(bad.rings):  # a view whose rings were mislabelled by one
+        ring.radius_mm = float(RADII[(k + 1) % len(RADII)])
     res = calibrate_intrinsics(obs, SIZE)
     assert 5 not in res.view_indices
     assert any(i == 5 and "outlier" in why for i, why in res.rejected)
