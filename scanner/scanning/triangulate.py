@@ -72,7 +72,7 @@ class Triangulator:
         Spacing of the undistortion table; 0 disables it (exact, iterative, slower).
     """
 
-    def __init__(self, calibration: Calibration, grid_step_px: float = 2.0) -> None:
+    def __init__(self, calibration: Calibration, grid_step_px: float = 4.0) -> None:
         self.calibration = calibration
         self.camera = camera_from_calibration(calibration)
         self.normal = np.asarray(calibration.light_plane.normal, dtype=np.float64)

@@ -45,7 +45,7 @@ def test_triangulate_frame_recovers_plane_points_in_the_base_frame():
     assert np.abs(points_base - truth).max() < 1e-6
 
 
-@pytest.mark.parametrize("step", [1.0, 2.0])
+@pytest.mark.parametrize("step", [2.0, 4.0])
 def test_undistortion_table_error_is_negligible(step):
     rng = np.random.default_rng(1)
     cal = _calibration()
@@ -53,7 +53,7 @@ def test_undistortion_table_error_is_negligible(step):
     exact = Triangulator(cal, grid_step_px=0).normalize(uv)
     table = Triangulator(cal, grid_step_px=step).normalize(uv)
     # In pixels (times the focal length): far below the stripe's 0.015 px.
-    assert np.abs(table - exact).max() * cal.K[0, 0] < 1e-3
+    assert np.abs(table - exact).max() * cal.K[0, 0] < 2e-3
 
 
 def test_points_base_uses_each_points_own_pose():
