@@ -6,7 +6,10 @@ Each fit runs in two steps:
    scores a hypothesis by its truncated squared distances, on a seeded random subsample of at
    most :data:`RANSAC_SUBSAMPLE` points, with the iteration count adapted to the inlier ratio.
    The best model's inliers are then taken from the full cloud (for a big cloud, after the
-   whole robust fit has run on the subsample).
+   whole robust fit has run on the subsample), alternating with the least squares until the
+   inlier set is stable. The inlier band is the threshold, widened to :data:`BAND_SIGMAS`
+   robust standard deviations of the residuals where the noise is wider: a band narrower than
+   the noise would clip the residuals and report the threshold as the form error.
 2. **Geometric least squares** on the inliers: orthogonal distances minimised by
    :func:`scipy.optimize.least_squares` with analytic Jacobians, started from a closed-form or
    algebraic estimate (for the plane and the line the orthogonal least-squares solution *is*
@@ -72,6 +75,9 @@ LSQ_SUBSAMPLE = 50_000
 #: After RANSAC, least squares and the inlier set are alternated until the set is stable, at
 #: most this many times.
 MAX_ROUNDS = 6
+#: After RANSAC the inlier band widens to this many robust standard deviations of the
+#: residuals where the noise is wider than the threshold.
+BAND_SIGMAS = 4.0
 #: Relative size of the smallest singular value below which a point set counts as degenerate.
 DEGENERACY_RATIO = 1e-6
 
@@ -536,6 +542,24 @@ def _radius_bounds(
     return lo, hi
 
 
+def _band(threshold_mm: float, residuals: NDArray, signed: bool = True) -> float:
+    """Inlier band after RANSAC: the threshold, or :data:`BAND_SIGMAS` robust standard
+    deviations of the current inliers' residuals when the noise is wider (a band narrower than
+    the noise would clip the residuals and report the threshold as the form error).
+
+    ``signed``: residuals are signed (MAD estimate); otherwise they are 2-D distances (line,
+    circle), whose median is ``1.1774 sigma`` (Rayleigh).
+    """
+    r = np.asarray(residuals, dtype=np.float64)
+    if r.size < 10:
+        return threshold_mm
+    if signed:
+        sigma = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+    else:
+        sigma = float(np.median(np.abs(r))) / 1.1774
+    return max(threshold_mm, BAND_SIGMAS * sigma)
+
+
 def _check_threshold(threshold_mm: float | None) -> None:
     if threshold_mm is not None and not (math.isfinite(threshold_mm) and threshold_mm > 0):
         raise ValueError(f"threshold_mm: expected a positive number or None, got {threshold_mm}")
@@ -609,13 +633,14 @@ def fit_plane(
         if best is None:
             return PlaneFit(reason="degenerate: RANSAC found no plane (collinear points?)")
         mask = np.abs(pts @ best[0] + best[1]) < threshold_mm
-        for _ in range(2):  # refine the inlier set once the plane is least-squares
+        for _ in range(MAX_ROUNDS):  # refine the inlier set once the plane is least-squares
             if np.count_nonzero(mask) < 3:
                 break
-            est = _plane_from_points(pts[mask])
+            est = _plane_from_points(_take(pts, mask))
             if est is None:
                 break
-            new = np.abs(pts @ est[0] + est[1]) < threshold_mm
+            dist = pts @ est[0] + est[1]
+            new = np.abs(dist) < _band(threshold_mm, dist[mask])
             if np.array_equal(new, mask):
                 break
             mask = new
@@ -738,7 +763,7 @@ def fit_sphere(
         )  # fmt: skip
         if not pre:
             return pre
-        mask = np.abs(pre.signed_distance(pts)) < threshold_mm
+        mask = np.abs(pre.signed_distance(pts)) < _band(threshold_mm, pre.residuals_mm)
         presolved = True
     if threshold_mm is not None and not presolved:
         sub = pts[_subsample(n_all, RANSAC_SUBSAMPLE, rng)]
@@ -785,7 +810,8 @@ def fit_sphere(
         x = _lsq(model.fun, model.jac, np.r_[init[0], init[1]], inl, rng)
         if threshold_mm is None:
             break
-        new = np.abs(_sphere_fun(x, pts)) < threshold_mm
+        dist = _sphere_fun(x, pts)
+        new = np.abs(dist) < _band(threshold_mm, dist[mask])
         if np.array_equal(new, mask) or np.count_nonzero(new) < 5 or rnd == MAX_ROUNDS - 1:
             break  # (on the last round keep the mask the parameters belong to)
         mask = new
@@ -977,7 +1003,7 @@ def fit_cylinder(
         )  # fmt: skip
         if not pre:
             return pre
-        mask = np.abs(pre.signed_distance(pts)) < threshold_mm
+        mask = np.abs(pre.signed_distance(pts)) < _band(threshold_mm, pre.residuals_mm)
         candidates.append((pre.axis, pre.point_mm))
         presolved = True
     if threshold_mm is not None and not presolved:
@@ -1051,7 +1077,8 @@ def fit_cylinder(
         if threshold_mm is None:
             break
         q = pts - point
-        new = np.abs(_rownorm(q - np.outer(q @ axis, axis)) - radius) < threshold_mm
+        dist = _rownorm(q - np.outer(q @ axis, axis)) - radius
+        new = np.abs(dist) < _band(threshold_mm, dist[mask])
         if np.array_equal(new, mask) or np.count_nonzero(new) < 6 or rnd == MAX_ROUNDS - 1:
             break  # (on the last round keep the mask the parameters belong to)
         mask = new
@@ -1180,7 +1207,8 @@ def fit_circle(
         )  # fmt: skip
         if not pre:
             return pre
-        mask = pre.distance(pts) < threshold_mm
+        band = _band(threshold_mm, np.hypot(pre.residuals_mm, pre.out_of_plane_mm), signed=False)
+        mask = pre.distance(pts) < band
         presolved = True
     if threshold_mm is not None and not presolved:
         sub = pts[_subsample(n_all, RANSAC_SUBSAMPLE, rng)]
@@ -1219,7 +1247,8 @@ def fit_circle(
         x_init = np.r_[0.0, 0.0, sol[2:5], abs(sol[5])]
         if threshold_mm is None:
             break
-        new = _circle_distance(pts, sol[2:5], n0, abs(sol[5])) < threshold_mm
+        dist = _circle_distance(pts, sol[2:5], n0, abs(sol[5]))
+        new = dist < _band(threshold_mm, dist[mask], signed=False)
         if np.array_equal(new, mask) or np.count_nonzero(new) < 4 or rnd == MAX_ROUNDS - 1:
             break  # (on the last round keep the mask the parameters belong to)
         mask = new
@@ -1303,11 +1332,12 @@ def fit_line(
         if best is None:
             return LineFit(reason="degenerate: RANSAC found no line (coincident points?)")
         mask = line_dist(pts, *best) < threshold_mm
-        for _ in range(2):
+        for _ in range(MAX_ROUNDS):
             if np.count_nonzero(mask) < 3:
                 break
-            c, _, evec = _scatter_eig(pts[mask])
-            new = line_dist(pts, c, evec[:, 2]) < threshold_mm
+            c, _, evec = _scatter_eig(_take(pts, mask))
+            dist = line_dist(pts, c, evec[:, 2])
+            new = dist < _band(threshold_mm, dist[mask], signed=False)
             if np.array_equal(new, mask):
                 break
             mask = new
