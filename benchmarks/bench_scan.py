@@ -35,7 +35,13 @@ import numpy as np
 
 from scanner.calibration_file import Calibration
 from scanner.scanning.stitch import build_cloud
-from scanner.scanning.stripe import StripeOptions, auto_half_window, estimate_noise, extract_stripe
+from scanner.scanning.stripe import (
+    StripeFlag,
+    StripeOptions,
+    auto_half_window,
+    estimate_noise,
+    extract_stripe,
+)
 from scanner.scanning.synthetic import StripeSegment, TableStepScene, render_stripes
 from scanner.scanning.triangulate import Triangulator
 
@@ -151,6 +157,17 @@ def _fit_sphere(p: np.ndarray) -> tuple[np.ndarray, float, float]:
     return c, r, float(np.sqrt(np.mean((np.linalg.norm(p - c, axis=1) - r) ** 2)))
 
 
+def _cylinder_distance(p: np.ndarray, params: dict) -> np.ndarray:
+    """Distance of points to a finite cylinder's surface (axis segment p0-p1, diameter)."""
+    p0, p1 = np.asarray(params["p0_mm"]), np.asarray(params["p1_mm"])
+    axis = p1 - p0
+    length = np.linalg.norm(axis)
+    axis = axis / length
+    t = np.clip((p - p0) @ axis, 0.0, length)
+    radial = np.linalg.norm(p - (p0 + t[:, None] * axis), axis=1)
+    return np.abs(radial - params["diameter_mm"] / 2)
+
+
 def _fit_plane(p: np.ndarray) -> tuple[np.ndarray, float]:
     c = p.mean(axis=0)
     _, _, vt = np.linalg.svd(p - c, full_matrices=False)
@@ -159,13 +176,13 @@ def _fit_plane(p: np.ndarray) -> tuple[np.ndarray, float]:
 
 
 def accuracy(cell_dir: Path) -> None:
-    import json
-
     from scanner.scanning.pipeline import ScanOptions, scan_session
+    from scanner.virtual_cell.truth import read_truth
 
-    truth = json.loads((cell_dir / "truth.json").read_text())
-    objects = {o["id"]: o for o in truth["objects"]}
-    spheres = [o for o in truth["objects"] if o["type"] == "sphere"]
+    truth = read_truth(cell_dir / "truth.json")
+    objects = {o.id: {"type": o.type, "params": o.params} for o in truth.objects}
+    spheres = [{"id": o.id, "params": o.params} for o in truth.objects if o.type == "sphere"]
+    sphere_pairs = truth.extra.get("sphere_pairs", [])
     print(f"\nVirtual cell accuracy ({cell_dir}, true calibration)")
     header = (
         f"{'mode':8s} {'points':>8s} {'time':>6s} {'sphere':>9s} {'d err mm':>9s} {'fit RMS':>8s}"
@@ -181,12 +198,22 @@ def accuracy(cell_dir: Path) -> None:
             progress=False,
         )
         pts = r.cloud.point.positions.numpy()
+        flags = r.cloud.point.flags.numpy().ravel()
+        # Points a metrology step would trust: not low-contrast, not ambiguous (saturated is
+        # fine: the flanks give the centre).
+        trusted = (flags & int(StripeFlag.LOW_CONTRAST | StripeFlag.AMBIGUOUS)) == 0
+        # Distance to the other objects, to keep the bar and post (which touch the spheres)
+        # out of the sphere fits.
+        cyl = [o.params for o in truth.objects if o.type == "cylinder"]
+        near_cyl = np.zeros(len(pts), bool)
+        for c in cyl:
+            near_cyl |= _cylinder_distance(pts, c) < 1.5
         centres = {}
         lines = []
         for o in spheres:
             c0 = np.asarray(o["params"]["center_mm"])
             r0 = o["params"]["diameter_mm"] / 2
-            near = np.abs(np.linalg.norm(pts - c0, axis=1) - r0) < 1.0
+            near = (np.abs(np.linalg.norm(pts - c0, axis=1) - r0) < 1.0) & ~near_cyl & trusted
             if np.count_nonzero(near) < 50:
                 lines.append(f"{o['id']:>9s} too few points ({np.count_nonzero(near)})")
                 continue
@@ -194,7 +221,7 @@ def accuracy(cell_dir: Path) -> None:
             centres[o["id"]] = c
             lines.append(f"{o['id']:>9s} {2 * rad - 2 * r0:+9.4f} {rms:8.4f}")
         spacing = ""
-        for pair in truth.get("extra", {}).get("sphere_pairs", []):
+        for pair in sphere_pairs:
             if pair["a"] in centres and pair["b"] in centres:
                 d = np.linalg.norm(centres[pair["a"]] - centres[pair["b"]])
                 spacing = f"{d - pair['distance_mm']:+12.4f}"
@@ -205,8 +232,10 @@ def accuracy(cell_dir: Path) -> None:
             m = np.asarray(objects["plate"]["params"]["base_from_box"])
             size = np.asarray(objects["plate"]["params"]["size_mm"])
             local = (pts - m[:3, 3]) @ m[:3, :3]
-            on_top = (np.abs(pts @ n0 + d0) < 1.0) & np.all(
-                np.abs(local[:, :2]) < size[:2] / 2 - 2.0, axis=1
+            on_top = (
+                (np.abs(pts @ n0 + d0) < 1.0)
+                & np.all(np.abs(local[:, :2]) < size[:2] / 2 - 2.0, axis=1)
+                & trusted
             )
             if np.count_nonzero(on_top) > 50:
                 n, d = _fit_plane(pts[on_top])
@@ -219,7 +248,9 @@ def accuracy(cell_dir: Path) -> None:
             tail = f" {spacing:>12s} {plate}" if i == 0 else ""
             print(f"{lead} {line}{tail}")
     print(
-        "targets: spacing within 0.05 mm, diameter within 0.03 mm; plate range/RMS ~6 means noise only"
+        "fits use unflagged or saturated points, away from the bar and post that touch the "
+        "spheres\ntargets: spacing within 0.05 mm, diameter within 0.03 mm; "
+        "plate range/RMS ~6 means noise only"
     )
 
 
@@ -231,7 +262,8 @@ def main() -> None:
         "--simulate", type=int, default=0, help="render a modern-cell sweep of N frames"
     )
     args = parser.parse_args()
-    throughput(args.frames)
+    if args.frames > 0:
+        throughput(args.frames)
     cell = args.cell
     if cell is None and args.simulate:
         from scanner.virtual_cell.simulate import simulate_cell
