@@ -516,6 +516,11 @@ def detect_concentric(
     ix, sign_x, sign_y, marker_px = labelled
     xline, yline = _unit_line(axis_lines[ix]), _unit_line(axis_lines[1 - ix])
 
+    # Lens distortion bends the lines and rings slightly: every crossing is refined by local
+    # quadratic fits of the measured points around it (exact to second order).
+    # O itself stays the mean of the pencil's centre and the lines' crossing: both use every
+    # ring and line point, which beats a local fit at the noise level.
+    pts_x, pts_y = axis_pts[ix], axis_pts[1 - ix]
     named: dict[str, NDArray] = {"O": center}
     points_px = [center]
     points_t = [np.zeros(3)]
@@ -527,8 +532,18 @@ def detect_concentric(
             if len(pts) != 2:
                 continue
             dirv = _axis_dir(ln, sgn)
+            apts = pts_x if axis_name == "x" else pts_y
             for p in pts:
                 side = 1.0 if float((p - center) @ dirv) > 0 else -1.0
+                if k in rings:
+                    ring_pts = rings[k][0]
+                    tang = _conic_normals(conics[k], p[None])[0]
+                    ring_line = np.array([tang[1], -tang[0], 0.0])
+                    ring_line[2] = -float(ring_line[:2] @ p)
+                    reach = max(15.0, 0.35 * float(np.linalg.norm(p - center)))
+                    q = _local_crossing(ring_pts, ring_line, apts, ln, p, reach)
+                    if q is not None and np.linalg.norm(q - p) < 2.0:
+                        p = q
                 if not (0 <= p[0] <= w - 1 and 0 <= p[1] <= h - 1):
                     continue
                 pt = np.zeros(3)
@@ -758,6 +773,50 @@ def _refine_axes(
         new_lines.append(line)
         new_pts.append(found)
     return new_lines, new_pts
+
+
+def _local_quadratic(
+    pts: NDArray, line: NDArray, near: NDArray, reach: float, two_sided: bool = True
+):
+    """Fit ``across = c0 + c1 along + c2 along^2`` to the points within ``reach`` of ``near``
+    in the frame of ``line``; returns (origin, along dir, across dir, coefficients) or None."""
+    ln = _unit_line(line)
+    n = ln[:2]
+    e = np.array([-n[1], n[0]])
+    sel = np.linalg.norm(pts - near, axis=1) < reach
+    if sel.sum() < 6:
+        return None
+    d = pts[sel] - near
+    a, b = d @ e, d @ n
+    if np.ptp(a) < 0.5 * reach:
+        return None
+    if two_sided and (a.min() > -0.2 * reach or a.max() < 0.2 * reach):
+        return None  # a ring needs points on both sides of the crossing
+    A = np.column_stack([np.ones_like(a), a, a * a])
+    coef, *_ = np.linalg.lstsq(A, b, rcond=None)
+    return near, e, n, coef
+
+
+def _local_crossing(
+    pts1: NDArray, line1: NDArray, pts2: NDArray, line2: NDArray, near: NDArray, reach: float
+) -> NDArray | None:
+    """Crossing of two measured curves near ``near`` from local quadratic fits."""
+    f1 = _local_quadratic(pts1, line1, near, reach)
+    f2 = _local_quadratic(pts2, line2, near, reach, two_sided=False)
+    if f1 is None or f2 is None:
+        return None
+    p = near.astype(np.float64).copy()
+    for _ in range(20):
+        # Project p onto curve 1 along its normal, then onto curve 2; alternate (converges
+        # fast for crossing angles far from zero).
+        for o, e, n, c in (f1, f2):
+            a = float((p - o) @ e)
+            p = o + a * e + (c[0] + c[1] * a + c[2] * a * a) * n
+    o, e, n, c = f1
+    a = float((p - o) @ e)
+    if abs(float((p - o) @ n) - (c[0] + c[1] * a + c[2] * a * a)) > 1e-3:
+        return None
+    return p
 
 
 def _combine_centre(

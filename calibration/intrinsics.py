@@ -587,7 +587,10 @@ def _adjust(
     prob.update_psi(x0, iterations=6)
     free = np.ones(x0.size, bool)
     free[[PARAM_NAMES.index(n) for n in fixed]] = False
-    sol = _levenberg_marquardt(prob, x0, 1.0 if f_scale_px is None else f_scale_px, free)
+    first_iter = 12 if f_scale_px is None else 60
+    sol = _levenberg_marquardt(
+        prob, x0, 1.0 if f_scale_px is None else f_scale_px, free, max_iter=first_iter
+    )
     if f_scale_px is None:
         r = prob.residuals(sol.x)
         sigma = 1.4826 * float(np.median(np.abs(r - np.median(r))))
