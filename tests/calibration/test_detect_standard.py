@@ -70,7 +70,9 @@ def test_circle_grid_real_data_reproduces_authors_focal_length():
 def test_kuka_chessboard_real_data_rms_below_a_tenth_of_a_pixel():
     root = _real("kuka_1")
     target = ChessboardTarget(inner_corners=(28, 17), square_mm=20.0)
-    paths = sorted(root.glob("*.png"))[:12]  # a subset keeps the test short
+    # Every other image keeps the test short; the first poses are pure translations, so a
+    # prefix alone would leave the focal length undetermined.
+    paths = sorted(root.glob("*.png"))[::2]
     obs = [detect_target(load_gray_image(p), target) for p in paths]
     assert sum(map(bool, obs)) >= 10
     res = calibrate_intrinsics(obs, obs[0].image_size)
