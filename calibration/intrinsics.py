@@ -104,6 +104,27 @@ class IntrinsicsResult:
     paper: dict[str, PaperEstimate] = field(default_factory=dict)
     n_residuals: int = 0
 
+    def quality(self) -> dict[str, object]:
+        """JSON-ready figures for the calibration file's ``quality`` object."""
+        out: dict[str, object] = {
+            "method": self.method,
+            "rms_px": self.rms_px,
+            "per_view_rms_px": [float(v) for v in self.per_view_rms_px],
+            "views_used": list(self.view_indices),
+            "std": dict(self.std),
+            "correlation": np.nan_to_num(self.correlation).tolist(),
+            "param_names": list(PARAM_NAMES),
+            "warnings": list(self.warnings),
+            "rejected": [{"view": i, "reason": why} for i, why in self.rejected],
+            "n_residuals": self.n_residuals,
+        }
+        paper = {}
+        for name, est in self.paper.items():
+            paper[name] = {"ok": est.ok, "reason": est.reason, "K": est.K.tolist()}
+        if paper:
+            out["paper"] = paper
+        return out
+
     @property
     def fx(self) -> float:
         return float(self.K[0, 0])
