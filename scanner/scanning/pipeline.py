@@ -283,27 +283,34 @@ def _load_chunk(path: Path, key: str) -> dict[str, NDArray] | None:
 def _sweep_stripe_options(
     frames: Sequence[Frame], options: ScanOptions, orientation: str, probes: int = 5
 ) -> StripeOptions:
-    """Fix the centre-of-gravity window once per sweep, from the first frames that show a stripe.
+    """Fix the centre-of-gravity window and the noise level once per sweep, from a few frames.
 
-    One window for the whole sweep keeps the estimator identical from frame to frame (and saves
-    measuring it on every frame).
+    One window for the whole sweep keeps the estimator identical from frame to frame, and
+    neither is then measured again on every frame.
     """
     import cv2
 
     from scanner.scanning.stripe import auto_half_window, estimate_noise
 
     stripe = options.stripe
-    if stripe.half_window_px is not None or not frames:
+    if (stripe.half_window_px is not None and stripe.noise is not None) or not frames:
         return stripe
     step = max(1, len(frames) // probes)
-    windows = []
+    windows, noises = [], []
     for f in frames[::step][:probes]:
         img = load_gray_image(f.laser_image, laser=True)  # type: ignore[arg-type]
+        if f.laser_off_image is not None and options.use_laser_off:
+            img = cv2.subtract(img, load_gray_image(f.laser_off_image, laser=True))
         work = img if orientation == "rows" else cv2.transpose(img)
-        windows.append(auto_half_window(work, estimate_noise(work)))
-    hw = int(np.median(windows))
-    log.info("centre-of-gravity half-window %d px (from %d frames)", hw, len(windows))
-    return replace(stripe, half_window_px=hw)
+        noise = estimate_noise(work)
+        noises.append(noise)
+        windows.append(auto_half_window(work, noise))
+    hw = stripe.half_window_px if stripe.half_window_px is not None else int(np.median(windows))
+    noise = stripe.noise if stripe.noise is not None else float(np.median(noises))
+    log.info(
+        "sweep constants: half-window %d px, noise %.2f (from %d frames)", hw, noise, len(noises)
+    )
+    return replace(stripe, half_window_px=hw, noise=noise)
 
 
 def _resolve_orientation(options: ScanOptions, calibration: Calibration) -> str:
