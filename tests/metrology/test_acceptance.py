@@ -42,7 +42,8 @@ def test_known_errors_are_measured_and_judged():
     rng = np.random.default_rng(1)
     moved = (SPHERES[0], SPHERES[1] + [0.0, 0.2, 0.0])  # spacing sqrt(100^2 + 0.2^2)
     cloud = paper_scene(rng, noise_mm=0.005, centers=moved, diameter_mm=25.46, plate_bump_mm=0.2)
-    result = run_acceptance(cloud, SPEC)
+    spec = dataclasses.replace(load_acceptance_spec(SPEC), mpe=MPE(0.15, 0.05, 0.1, 0.1))
+    result = run_acceptance(cloud, spec)
     c = by_symbol(result)
     for ps in c["PS"]:
         assert ps.value_mm == pytest.approx(0.06, abs=0.002)
@@ -103,7 +104,7 @@ def test_spec_validation(tmp_path: Path):
 def test_acceptance_command(tmp_path: Path, capsys, monkeypatch):
     monkeypatch.setenv("SCANNER_RENDERER", "matplotlib")
     cloud = tmp_path / "scan.npy"
-    np.save(cloud, paper_scene(np.random.default_rng(4), n=6000, diameter_mm=25.5))
+    np.save(cloud, paper_scene(np.random.default_rng(4), n=6000, diameter_mm=25.8))
     out = tmp_path / "acc.json"
     args = ["acceptance", str(cloud), "--spec", "acceptance_paper", "--out", str(out)]
     assert main(args) == 0
@@ -112,7 +113,7 @@ def test_acceptance_command(tmp_path: Path, capsys, monkeypatch):
     assert "FAIL: PS sphere_1" in printed
     data = json.loads(out.read_text())
     assert data["standard"] == "VDI/VDE 2634 Part 2"
-    assert data["values_mm"]["PS"] == pytest.approx(0.1, abs=0.005)
+    assert data["values_mm"]["PS"] == pytest.approx(0.4, abs=0.005)
     assert out.with_suffix(".html").is_file() and out.with_suffix(".csv").is_file()
     assert main([*args, "--strict"]) == 1
     capsys.readouterr()

@@ -384,3 +384,17 @@ def test_json_of_a_minimal_fit_has_no_nan():
     assert fit
     data = json.loads(json.dumps(fit.to_json(), allow_nan=False))
     assert data["d_std_mm"] is None and data["n_inliers"] == 3
+
+
+def test_inlier_band_follows_noise_wider_than_the_threshold():
+    """A threshold below the noise must not clip the residuals (the form would read 2 t)."""
+    rng = np.random.default_rng(18)
+    noisy = sample_plane([0, 0, 1], 0.0, 5000, rng, noise_mm=0.2)
+    clutter = rng.uniform(-50, 50, (500, 3)) + np.array([0.0, 0.0, 60.0])
+    fit = fit_plane(np.vstack([noisy, clutter]), threshold_mm=0.3)
+    assert fit.inliers[:5000].mean() > 0.999
+    assert not fit.inliers[5000:].any()
+    assert fit.rms_mm == pytest.approx(0.2, rel=0.05)
+    assert fit.range_mm > 1.0  # about 7 sigma, not 0.6
+    sphere = fit_sphere(sample_sphere([0, 0, 0], 12.7, 3000, rng, noise_mm=0.15, cap=True), 0.2)
+    assert sphere.n_inliers > 2990 and sphere.range_mm > 0.8
