@@ -1,11 +1,11 @@
 """Running one job: on a thread of the service, or in a worker process of its own.
 
 ``[jobs] worker = "process"`` (the default of ``configs/plc.toml``) runs each job in a fresh
-``spawn``-ed process. Measured with ``benchmarks/bench_plc.py`` (50 clients polling status),
-a job that computes in Python on a *thread* competes with the event loop for the GIL and
-status reads slow from p99 ~ 6 ms to ~ 470 ms; in a process they do not. A process can also be
-killed when the watchdog fires and the job does not reach its next cancellation check within
-``kill_after_s``, and a crash in native code (OpenCV, Open3D) ends the job, not the service.
+``spawn``-ed process: it can be killed when the watchdog fires and the job does not reach its
+next cancellation check within ``kill_after_s``, a crash in native code (OpenCV, Open3D) ends
+the job and not the service, and a job computing in Python does not compete with the event
+loop for the GIL (``benchmarks/bench_plc.py``, 50 clients polling status: once p99 467 ms with
+a thread worker against ~ 6 ms idle; see docs/PLC.md for the runs).
 
 ``worker = "thread"`` runs the job in the service's own interpreter: it is what the tests use
 with injected fake runners, and it is cheaper for jobs that spend their time in code that
