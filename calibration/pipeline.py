@@ -201,6 +201,7 @@ def calibrate_session(
     progress: bool = True,
     refine_intrinsics: bool = False,
     on_stage: Callable[[str], None] | None = None,
+    observations: dict[int, TargetObservation] | None = None,
 ) -> CalibrationResult:
     """Calibrate intrinsics, light plane and hand-eye from one calibration session.
 
@@ -217,6 +218,9 @@ def calibrate_session(
         Let the hand-eye adjustment refine the intrinsics too.
     on_stage : callable, optional
         Called with the name of each stage as it starts.
+    observations : dict of int to TargetObservation, optional
+        Detections from an earlier run on the same session (frame id -> observation), to
+        skip the detection stage.
 
     Returns
     -------
@@ -246,11 +250,12 @@ def calibrate_session(
 
     # 1. detection
     stage("detect")
-    observations: dict[int, TargetObservation] = {}
+    given = observations or {}
+    observations = {}
     rejected: list[dict[str, Any]] = []
     with_target = [f for f in session.frames if f.target_image is not None]
     for f in _progress(with_target, progress, "detect"):
-        obs = detect_target(session.load_target_image(f), target)
+        obs = given.get(f.id) or detect_target(session.load_target_image(f), target)
         observations[f.id] = obs
         if not obs:
             rejected.append({"frame_id": f.id, "stage": "detect", "reason": obs.reason})
@@ -280,13 +285,18 @@ def calibrate_session(
     t1 = time.perf_counter()
     cam_from_target: dict[int, NDArray] = {}
     extrinsics_q: list[dict[str, Any]] = []
+    # The intrinsics adjustment refines every view's pose with all its features (ring edges
+    # and diameter lines of the concentric target): better than PnP on the named points.
+    intr_pose = {
+        found[i].id: np.asarray(p) for i, p in zip(intr.view_indices, intr.cam_from_target)
+    }
     for f in found:
         obs = observations[f.id]
         pose = estimate_pose(obs.points_px, obs.points_target, camera)
         if not pose:
             rejected.append({"frame_id": f.id, "stage": "extrinsics", "reason": pose.reason})
             continue
-        cam_from_target[f.id] = pose.cam_from_target  # type: ignore[assignment]
+        cam_from_target[f.id] = intr_pose.get(f.id, pose.cam_from_target)  # type: ignore[arg-type]
         extrinsics_q.append(
             {
                 "frame_id": f.id,
