@@ -443,10 +443,25 @@ def stripe_truth(
     cam_from_world = invert_transform(scene.world_from_cam)
     origin = scene.world_from_cam[:3, 3]
     # Sampling step from the distance of the camera to the laser-lit region.
-    depth = max(abs(laser.d + laser.normal @ origin), 50.0) * 3
-    step_mm = step_px * depth / max(camera.fx, camera.fy)
+    # Sampling step: step_px at the median distance of the lit curve seen in the image, found
+    # from a coarse pass (unbounded surfaces are cut within a generous radius of the camera).
+    reach = max(abs(laser.d + laser.normal @ origin), 50.0) * 12
+    coarse, _ = section_points(
+        scene.surfaces, laser.normal, laser.d, 2.0, clip_center=origin, clip_radius=reach
+    )
+    focal = max(camera.fx, camera.fy)
+    if len(coarse):
+        pc0 = transform_points(cam_from_world, coarse)
+        ok = pc0[:, 2] > 1e-3
+        uv0 = camera.model().project(pc0[ok]) if np.any(ok) else np.zeros((0, 2))
+        seen = camera.model().in_image(uv0, -50.0)
+        dist = np.linalg.norm(pc0[ok][seen], axis=1) if np.any(seen) else np.array([reach / 4])
+        reach = min(reach, float(dist.max()) * 1.5)
+        step_mm = step_px * float(np.median(dist)) / focal
+    else:
+        step_mm = step_px * reach / 12 / focal
     pts, sid = section_points(
-        scene.surfaces, laser.normal, laser.d, step_mm, clip_center=origin, clip_radius=4 * depth
+        scene.surfaces, laser.normal, laser.d, step_mm, clip_center=origin, clip_radius=reach
     )
     ids = tuple(s.id for s in scene.surfaces)
     empty = StripeTruth(np.zeros((0, 2)), np.zeros(0, dtype=np.int32), np.zeros((0, 3)), ids)

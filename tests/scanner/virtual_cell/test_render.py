@@ -58,6 +58,7 @@ def _ring_offsets_px(cell: CellConfig, cam_from_target: np.ndarray, image: np.nd
     return np.asarray(out)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "cell_fixture, tilt",
     [("paper_exact", (25.0, -10.0, 30.0)), ("modern_exact", (-15.0, 20.0, 70.0))],
@@ -215,6 +216,7 @@ def test_noise_and_quantisation_are_honest():
     assert np.all(sat == 255)
 
 
+@pytest.mark.slow
 def test_render_speed_is_measured(paper_exact, modern_exact, capsys):
     """Not an assertion on time: prints it (see the report of the virtual cell)."""
     for cell in (paper_exact, modern_exact):

@@ -14,6 +14,8 @@ from scanner.targets import ChessboardTarget
 from scanner.virtual_cell.quick import quick_cell, quick_simulation
 from scanner.virtual_cell.truth import read_truth
 
+pytestmark = pytest.mark.slow  # one quick simulation for the module: about 15 s
+
 
 @pytest.fixture(scope="module")
 def simulated(tmp_path_factory):
@@ -94,7 +96,6 @@ def test_same_seed_same_images(simulated, tmp_path):
     np.testing.assert_array_equal(a.load_laser_image(a.frames[1]), b.load_laser_image(b.frames[1]))
 
 
-@pytest.mark.slow
 def test_chessboard_override_at_the_same_poses(simulated, tmp_path):
     cell, out = simulated
     quick_simulation(tmp_path, cell, seed=3, target="chessboard")
