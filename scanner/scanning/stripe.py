@@ -428,7 +428,7 @@ def _measure(
 
 
 def _saturated_centres(
-    img: NDArray, lines: NDArray, cols: NDArray, sat: float, reach: int = 40
+    img: NDArray, lines: NDArray, cols: NDArray, sat: float, reach: int = 24
 ) -> tuple[NDArray, NDArray]:
     """Centre of the saturated run through ``cols`` and the run's length.
 
@@ -453,15 +453,14 @@ def _saturated_centres(
     centre = 0.5 * (a + b)
     run = (b - a + 1).astype(np.float64)
 
-    # Background: the lowest finite values of the window's two ends.
-    finite = np.where(np.isfinite(vals), vals, np.nan)
-    with np.errstate(all="ignore"):
-        bg = np.nanmin(
-            np.column_stack(
-                [np.nanmedian(finite[:, :6], axis=1), np.nanmedian(finite[:, -6:], axis=1)]
-            ),
-            axis=1,
-        )
+    # Background: the lower of the mean levels at the window's two ends (inside the image).
+    ends = []
+    for sl in (slice(0, 6), slice(-6, None)):
+        fin = inside[:, sl]
+        n_fin = fin.sum(axis=1)
+        level = np.where(fin, vals[:, sl], 0.0).sum(axis=1) / np.maximum(n_fin, 1)
+        ends.append(np.where(n_fin > 0, level, np.inf))
+    bg = np.minimum(ends[0], ends[1])
     bg = np.where(np.isfinite(bg), bg, 0.0)
     w = vals - bg[:, None]
     x = off[None, :].astype(np.float64)
@@ -476,11 +475,19 @@ def _saturated_centres(
     xc = x - (centre - mid)[:, None]  # centred for conditioning
     m = np.empty((len(cols), 3, 3))
     r = np.empty((len(cols), 3))
-    powers = [np.ones_like(xc), xc, xc * xc, xc**3, xc**4]
+    sums = []
+    term = wt
+    for k in range(5):  # sum w x^k, k = 0..4: the normal equations' distinct entries
+        if k:
+            term = term * xc
+        sums.append(term.sum(axis=1))
     for i in range(3):
-        r[:, i] = (wt * powers[i] * y).sum(axis=1)
         for j in range(3):
-            m[:, i, j] = (wt * powers[i + j]).sum(axis=1)
+            m[:, i, j] = sums[i + j]
+    wy = wt * y
+    r[:, 0] = wy.sum(axis=1)
+    r[:, 1] = (wy * xc).sum(axis=1)
+    r[:, 2] = (wy * xc * xc).sum(axis=1)
     fit_ok = (left_n >= 1) & (right_n >= 1) & (left_n + right_n >= 3)
     refined = centre.copy()
     if np.any(fit_ok):
@@ -538,7 +545,20 @@ def _primary_and_secondary(img: NDArray, options: StripeOptions, noise: float, h
     extra = np.flatnonzero(count_all > in_win)
     parts = [prim]
     if extra.size:
-        parts.append(_secondary_peaks(img, extra, cols[extra], hw, sat, thr))
+        # The global level is only a first sieve: a further peak must clear its own line's
+        # background and the fraction of the line's brightest contrast.
+        line_bg = prim.peak[extra] - prim.contrast[extra]
+        line_thr = np.maximum(line_bg, bg_level) + np.maximum(
+            thr_contrast, options.min_relative_peak * np.maximum(prim.contrast[extra], 0.0)
+        )
+        above = img[extra] > line_thr[:, None]
+        win = cols[extra][:, None] + np.arange(-hw, hw + 1)
+        in_line_win = np.take_along_axis(above, np.clip(win, 0, W - 1), axis=1) & (
+            (win >= 0) & (win < W)
+        )
+        extra = extra[above.sum(axis=1) > in_line_win.sum(axis=1)]
+        if extra.size:
+            parts.append(_secondary_peaks(img, extra, cols[extra], hw, sat, thr))
     peaks = _Peaks.concat(parts)
 
     # Contrast thresholds: noise, absolute, and relative to the line's brightest peak.
@@ -558,10 +578,11 @@ def _line_max(line: NDArray, value: NDArray, n_lines: int) -> NDArray:
     if line.size and np.all(line[1:] > line[:-1]):
         best[line] = value
         return best
-    order = np.lexsort((value, line))
-    last = np.ones(line.size, bool)
-    last[:-1] = line[order][1:] != line[order][:-1]
-    best[line[order][last]] = value[order][last]
+    # Two sorted runs (primary peaks, then further peaks): a stable sort merges them cheaply.
+    order = np.argsort(line, kind="stable")
+    ls = line[order]
+    starts = np.flatnonzero(np.concatenate([[True], ls[1:] != ls[:-1]]))
+    best[ls[starts]] = np.maximum.reduceat(value[order], starts)
     return best
 
 
