@@ -597,25 +597,63 @@ class StripePointView:
 def _linear_hand_eye_from_points(groups: dict[str, list[StripePointView]]) -> NDArray:
     """Closed form for X from fixed points seen at several poses.
 
-    ``F_j X p_j = F_0 X p_0`` for every view j of the same point is linear in ``vec(R_X)`` and
-    ``t_X``; the rotation is then orthonormalised by SVD and the translation re-solved.
+    ``F_j X p_j = F_0 X p_0`` for every view j of the same point. Every ``p`` lies in the light
+    plane ``n . p + d = 0``, so write ``p = -d n + alpha e1 + beta e2``; then
+    ``X p = alpha (R e1) + beta (R e2) + (t - d R n)`` is linear in the nine unknowns
+    ``a = R e1``, ``b = R e2``, ``s = t - d R n`` (the 12 entries of R and t are not all
+    observable from coplanar points: a linear solve for them has a 3-D null space). R follows
+    from ``[a, b, a x b]`` by SVD orthonormalisation, then the translation is re-solved.
     """
+    all_p = np.array([v.point_cam for g in groups.values() for v in g])
+    centre = all_p.mean(axis=0)
+    _, sv, vt = np.linalg.svd(all_p - centre)
+    if sv[1] < 1e-6 * max(sv[0], 1e-12):
+        raise ValueError("paper hand-eye: the stripe points are collinear")
+    e1, e2, n = vt[0], vt[1], vt[2]
+    if sv[2] > 1e-2 * sv[0]:
+        return _linear_hand_eye_general(groups)
     rows, rhs = [], []
     for views in groups.values():
         ref = views[0]
+        r_0, t_0 = ref.base_from_flange[:3, :3], ref.base_from_flange[:3, 3]
+        a0, b0 = float(e1 @ ref.point_cam), float(e2 @ ref.point_cam)
         for v in views[1:]:
             r_j, t_j = v.base_from_flange[:3, :3], v.base_from_flange[:3, 3]
-            r_0, t_0 = ref.base_from_flange[:3, :3], ref.base_from_flange[:3, 3]
-            # R_j R p_j - R_0 R p_0 + (R_j - R_0) t = t_0 - t_j;  R p = kron(I, p^T) vec_row(R)
+            aj, bj = float(e1 @ v.point_cam), float(e2 @ v.point_cam)
+            rows.append(np.hstack([aj * r_j - a0 * r_0, bj * r_j - b0 * r_0, r_j - r_0]))
+            rhs.append(t_0 - t_j)
+    a = np.vstack(rows)
+    b = np.concatenate(rhs)
+    if np.linalg.matrix_rank(a, tol=1e-9 * np.abs(a).max()) < 9:
+        raise ValueError("paper hand-eye: the views aimed at O, A and C do not determine T_ec")
+    sol = np.linalg.lstsq(a, b, rcond=None)[0]
+    ra, rb = sol[:3], sol[3:6]
+    rn = np.cross(ra, rb)
+    rn /= np.linalg.norm(rn)
+    rot = orthonormalize(np.column_stack([ra, rb, rn]) @ np.vstack([e1, e2, n]))
+    return _resolve_translation(groups, rot)
+
+
+def _linear_hand_eye_general(groups: dict[str, list[StripePointView]]) -> NDArray:
+    """The same constraints for points in general position: linear in vec(R) and t."""
+    rows, rhs = [], []
+    for views in groups.values():
+        ref = views[0]
+        r_0, t_0 = ref.base_from_flange[:3, :3], ref.base_from_flange[:3, 3]
+        for v in views[1:]:
+            r_j, t_j = v.base_from_flange[:3, :3], v.base_from_flange[:3, 3]
             m = r_j @ np.kron(np.eye(3), v.point_cam) - r_0 @ np.kron(np.eye(3), ref.point_cam)
             rows.append(np.hstack([m, r_j - r_0]))
             rhs.append(t_0 - t_j)
     a = np.vstack(rows)
-    b = np.concatenate(rhs)
-    if np.linalg.matrix_rank(a, tol=1e-6 * np.abs(a).max()) < 12:
+    if np.linalg.matrix_rank(a, tol=1e-9 * np.abs(a).max()) < 12:
         raise ValueError("paper hand-eye: the views aimed at O, A and C do not determine T_ec")
-    sol = np.linalg.lstsq(a, b, rcond=None)[0]
-    rot = orthonormalize(sol[:9].reshape(3, 3))
+    sol = np.linalg.lstsq(a, np.concatenate(rhs), rcond=None)[0]
+    return _resolve_translation(groups, orthonormalize(sol[:9].reshape(3, 3)))
+
+
+def _resolve_translation(groups: dict[str, list[StripePointView]], rot: NDArray) -> NDArray:
+    """Least-squares translation of X with its rotation fixed."""
     # Re-solve the translation with the rotation fixed.
     rows_t, rhs_t = [], []
     for views in groups.values():
