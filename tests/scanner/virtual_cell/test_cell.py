@@ -78,3 +78,30 @@ def test_chessboard_override_is_found_by_opencv_where_projected():
     assert np.median(np.linalg.norm(err, axis=1)) < 0.06
     assert np.max(np.linalg.norm(err, axis=1)) < 0.15
     assert np.all(np.abs(err.mean(axis=0)) < 0.01)
+
+
+def test_circle_grid_override_is_found_by_opencv_where_projected():
+    cell = load_cell("paper")
+    spec = load_target("circle_grid_7x5")
+    rot = Rotation.from_euler("xyz", [190.0, -12.0, 20.0], degrees=True)
+    centre = spec.object_points().mean(axis=0)
+    c_t = make_transform(rot, -rot.apply(centre) + [0.0, 0.0, 520.0])
+    image = render_target_image(cell, c_t, np.random.default_rng(1), target=spec)
+    found, centres = cv2.findCirclesGrid(image, spec.grid, flags=cv2.CALIB_CB_SYMMETRIC_GRID)
+    assert found
+    centres = centres.reshape(-1, 2)
+    expected = cell.camera_model().project(transform_points(c_t, spec.object_points()))
+    nearest = np.min(np.linalg.norm(centres[:, None] - expected[None], axis=2), axis=1)
+    # Blob centroids of the projected discs: perspective shifts them by a few hundredths.
+    assert np.max(nearest) < 0.1
+
+
+def test_target_image_with_laser_shows_both():
+    cell = load_cell("paper")
+    rot = Rotation.from_euler("xyz", [200.0, 0.0, 0.0], degrees=True)
+    c_t = make_transform(rot, [0.0, 20.0, 500.0])
+    plain = render_target_image(cell, c_t, None).astype(int)
+    lit = render_target_image(cell, c_t, None, laser=True).astype(int)
+    assert np.all(lit >= plain)
+    assert (lit - plain).max() > 40
+    assert np.median(lit - plain) == 0
