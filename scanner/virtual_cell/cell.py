@@ -154,6 +154,12 @@ class LaserConfig:
             )
         if self.sigma_mm <= 0 or self.power <= 0:
             raise ValueError("laser: expected sigma_mm > 0 and power > 0")
+        off = float(self.normal @ np.asarray(self.origin_mm, dtype=float) + self.d)
+        if abs(off) > 1.0:
+            raise ValueError(
+                f"laser.origin_mm: expected a point on the light plane (within 1 mm), "
+                f"got {off:.3f} mm off it"
+            )
 
     @property
     def normal(self) -> NDArray:
@@ -227,6 +233,27 @@ class CaptureConfig:
     max_tilt_deg: float = 45.0
     posed_tilt_deg: tuple[float, float] = (10.0, 30.0)
 
+    def __post_init__(self) -> None:
+        if self.working_distance_mm <= 0:
+            raise ValueError(
+                f"capture.working_distance_mm: expected > 0, got {self.working_distance_mm}"
+            )
+        counts = (
+            self.hand_held_frames,
+            self.light_plane_frames,
+            self.posed_frames,
+            self.aim_frames_each,
+            self.check_frames,
+        )
+        if min(counts) < 0:
+            raise ValueError(f"capture: expected frame counts >= 0, got {counts}")
+        lo, hi = self.posed_tilt_deg
+        if not 0 <= lo <= hi < 80 or not 0 < self.max_tilt_deg < 80:
+            raise ValueError(
+                "capture: expected 0 <= posed_tilt_deg[0] <= posed_tilt_deg[1] < 80 and "
+                f"0 < max_tilt_deg < 80, got {self.posed_tilt_deg}, {self.max_tilt_deg}"
+            )
+
 
 @dataclass(frozen=True)
 class ObjectConfig:
@@ -270,6 +297,16 @@ class SweepConfig:
     table_z_mm: float = 0.0
     table_albedo: float = 0.3
     objects: tuple[ObjectConfig, ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.frames < 1 or self.step_mm <= 0 or self.standoff_mm <= 0:
+            raise ValueError(
+                f"sweep: expected frames >= 1, step_mm > 0 and standoff_mm > 0, got "
+                f"{self.frames}, {self.step_mm}, {self.standoff_mm}"
+            )
+        ids = [o.id for o in self.objects]
+        if len(set(ids)) != len(ids) or "table" in ids:
+            raise ValueError(f"sweep.objects: expected unique ids other than 'table', got {ids}")
 
 
 @dataclass(frozen=True)

@@ -49,6 +49,12 @@ def test_bad_cell_names_the_key(tmp_path):
     bad.write_text(text.replace("sigma_mm = 0.3", "sigma_mmm = 0.3"))
     with pytest.raises(ConfigError, match=r"sigma_mmm: unknown key"):
         load_cell(bad)
+    bad.write_text(text.replace("origin_mm = [-40.298, -88.088, 7.671]", "origin_mm = [0, 0, 0]"))
+    with pytest.raises(ConfigError, match=r"origin_mm: expected a point on the light plane"):
+        load_cell(bad)
+    bad.write_text(text.replace("frames = 300", "frames = 0"))
+    with pytest.raises(ConfigError, match=r"sweep: expected frames >= 1"):
+        load_cell(bad)
 
 
 def test_chessboard_override_is_found_by_opencv_where_projected():
