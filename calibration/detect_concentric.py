@@ -537,11 +537,13 @@ def detect_concentric(
                 side = 1.0 if float((p - center) @ dirv) > 0 else -1.0
                 if k in rings:
                     ring_pts = rings[k][0]
-                    tang = _conic_normals(conics[k], p[None])[0]
-                    ring_line = np.array([tang[1], -tang[0], 0.0])
-                    ring_line[2] = -float(ring_line[:2] @ p)
+                    nrm = _conic_normals(conics[k], p[None])[0]
+                    ring_line = np.array([nrm[0], nrm[1], -float(nrm @ p)])  # the tangent
                     reach = max(15.0, 0.35 * float(np.linalg.norm(p - center)))
-                    q = _local_crossing(ring_pts, ring_line, apts, ln, p, reach)
+                    biased = _locally_biased(
+                        sampson_distances(conics[k], ring_pts), ring_pts, p, reach
+                    ) or _locally_biased(apts @ ln[:2] + ln[2], apts, p, reach)
+                    q = _local_crossing(ring_pts, ring_line, apts, ln, p, reach) if biased else None
                     if q is not None and np.linalg.norm(q - p) < 2.0:
                         p = q
                 if not (0 <= p[0] <= w - 1 and 0 <= p[1] <= h - 1):
@@ -775,6 +777,18 @@ def _refine_axes(
     return new_lines, new_pts
 
 
+def _locally_biased(resid: NDArray, pts: NDArray, near: NDArray, reach: float) -> bool:
+    """Whether a global fit's residuals near ``near`` are significantly off zero (the curve is
+    bent there, e.g. by lens distortion), so a local fit is worth its extra noise."""
+    sel = np.linalg.norm(pts - near, axis=1) < reach
+    if sel.sum() < 6:
+        return False
+    r = resid[sel]
+    sem = float(np.std(r)) / np.sqrt(sel.sum())
+    # Neighbouring edge points are correlated (blur): a generous threshold.
+    return abs(float(np.mean(r))) > max(5.0 * sem, 0.03)
+
+
 def _local_quadratic(
     pts: NDArray, line: NDArray, near: NDArray, reach: float, two_sided: bool = True
 ):
@@ -805,18 +819,31 @@ def _local_crossing(
     f2 = _local_quadratic(pts2, line2, near, reach, two_sided=False)
     if f1 is None or f2 is None:
         return None
-    p = near.astype(np.float64).copy()
-    for _ in range(20):
-        # Project p onto curve 1 along its normal, then onto curve 2; alternate (converges
-        # fast for crossing angles far from zero).
-        for o, e, n, c in (f1, f2):
-            a = float((p - o) @ e)
-            p = o + a * e + (c[0] + c[1] * a + c[2] * a * a) * n
-    o, e, n, c = f1
-    a = float((p - o) @ e)
-    if abs(float((p - o) @ n) - (c[0] + c[1] * a + c[2] * a * a)) > 1e-3:
+    o1, e1, n1, c1 = f1
+    o2, e2, n2, c2 = f2
+
+    def point1(a: float) -> NDArray:
+        return o1 + a * e1 + (c1[0] + c1[1] * a + c1[2] * a * a) * n1
+
+    def gap(a: float) -> float:
+        p = point1(a)
+        s2 = float((p - o2) @ e2)
+        return float((p - o2) @ n2) - (c2[0] + c2[1] * s2 + c2[2] * s2 * s2)
+
+    # Newton on the position along curve 1 (any crossing angle, unlike alternating projections).
+    a = float((near - o1) @ e1)
+    for _ in range(30):
+        f = gap(a)
+        df = (gap(a + 1e-3) - f) / 1e-3
+        if abs(df) < 1e-9:
+            return None
+        step = f / df
+        a -= step
+        if abs(step) < 1e-7:
+            break
+    if abs(gap(a)) > 1e-4:
         return None
-    return p
+    return point1(a)
 
 
 def _combine_centre(
