@@ -261,3 +261,17 @@ def test_virtual_cell_frame_with_speckle_is_speckle_limited():
     table = clean & ok & (surface[nearest] == "table")
     # Speckle (contrast 0.25) moves the centres by ~0.1 px, correlated along the stripe.
     assert np.sqrt(np.mean(err[table] ** 2)) < 0.15
+
+
+@pytest.mark.parametrize("curvature", [0.01, 0.02])
+def test_precise_mode_corrects_the_smoothing_bias_of_curved_stripes(curvature):
+    # pos(line) = 150 + k (line - 120)^2: apex at line 120, radius 1 / (2 k) pixels.
+    k = curvature / 2
+    seg = StripeSegment((0, 240), (150 + k * 120**2, -2 * k * 120, k), amplitude=170, sigma_px=1.3)
+    img, ((lines, pos),) = render_stripes((240, 320), [seg], noise=0.3, seed=1)
+    p = extract_stripe(img, mode="precise", orientation="rows")
+    truth = np.full(240, np.nan)
+    truth[lines] = pos
+    err = (p.u - truth[p.line])[np.abs(p.line - 120) < 20]
+    # Uncorrected, Gaussian smoothing moves the ridge by ~sigma^2 pos'' / 2 (0.009-0.02 px).
+    assert abs(np.mean(err)) < 0.004
