@@ -311,17 +311,17 @@ class PipelineJobs:
         ctx.check_cancelled()
         run_ef_check = _stage("metrology.ef_check", "run_ef_check")
         out = ctx.work_dir / "ef_check.json"
-        result = _call(run_ef_check, ctx.session_path, calibration, out)
+        report = ctx.work_dir / "ef_check.html"
+        result = _call(run_ef_check, ctx.session_path, calibration, out, report_path=report)
         results = (
             _mm_to_um(getattr(result, "mean_abs_error_mm", None)),
             _mm_to_um(getattr(result, "max_abs_error_mm", None)),
             _mm_to_um(getattr(result, "o_spread_mm", None)),
         )
-        report = getattr(result, "report_path", None)
         return JobOutcome(
             passed=check_passed(results, self.config.check),
             results_um=results,
-            report_path=Path(report) if report else out,
+            report_path=report if report.is_file() else out,
             artefacts=(out,),
         )
 
