@@ -140,3 +140,33 @@ def test_too_oblique_is_refused():
     T = look_at_pose(560.0, 75.0, 0.0, 0.0)
     obs = detect_target(render(demo_target(), K, T, SIZE, rng, supersample=3), demo_target())
     assert not obs
+
+
+@pytest.mark.slow
+def test_virtual_cell_views_detected_labelled_and_calibrated():
+    from calibration.intrinsics import calibrate_intrinsics
+    from scanner.virtual_cell import load_cell, render_target_image
+    from scanner.virtual_cell.poses import hand_held_view
+
+    cell = load_cell("modern")
+    cam, spec = cell.camera_model(), cell.target_spec()
+    rng = np.random.default_rng(21)
+    obs, truths = [], []
+    for i in range(8):
+        T = hand_held_view(cell, rng)
+        img = render_target_image(cell, T, np.random.default_rng(100 + i))
+        ob = detect_target(img, spec)
+        if ob:
+            # Labelling: A, C where the true camera sees them (within the distortion-limited
+            # accuracy of the crossings).
+            for name in ("A", "C"):
+                if name in ob.named_px:
+                    p = spec.named_points()[name]
+                    want = cam.project(transform_points(T, p[None]))[0]
+                    assert np.linalg.norm(ob.named_px[name] - want) < 0.3
+        obs.append(ob)
+        truths.append(T)
+    assert sum(map(bool, obs)) >= 6, [o.reason for o in obs if not o]
+    res = calibrate_intrinsics(obs, (cam.width, cam.height))
+    assert abs(res.fx / cam.K[0, 0] - 1) < 2e-4
+    assert abs(res.fy / cam.K[1, 1] - 1) < 2e-4
