@@ -427,11 +427,12 @@ def evaluate_measurement(spec: MeasurementSpec, fits: dict[str, Fit]) -> Toleran
     elif spec.type in ("flatness", "form"):
         fit = used[0]
         if spec.method == "min_zone":
-            value = (
-                fit.min_zone_mm
-                if fit.min_zone_mm is not None
-                else _min_zone_now(fit, spec.features[0])
-            )
+            if fit.min_zone_mm is None:  # measure_cloud turns min_zone on for these features
+                raise ValueError(
+                    f"{spec.name}: minimum-zone form needs the fit option min_zone = true on "
+                    f"feature {spec.features[0]!r}"
+                )
+            value = fit.min_zone_mm
             note = "minimum zone"
         else:
             value = float(fit.range_mm)
@@ -442,13 +443,6 @@ def evaluate_measurement(spec: MeasurementSpec, fits: dict[str, Fit]) -> Toleran
     else:  # pragma: no cover - the plan validates types
         raise ValueError(f"type: unknown measurement type {spec.type!r}")
     return ToleranceRow(**row, actual=float(value), note=note)
-
-
-def _min_zone_now(fit: Fit, name: str) -> float:
-    raise ValueError(
-        f"{name}: minimum-zone form needs the feature's fit option min_zone = true "
-        f"(the points are no longer at hand)"
-    )
 
 
 # --------------------------------------------------------------------------------------------
