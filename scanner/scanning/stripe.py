@@ -721,7 +721,7 @@ def _refine_precise(img: NDArray, peaks: _Peaks, sigma: float) -> tuple[NDArray,
     its line and the across-line offset otherwise (kept for stripes parallel to the lines).
     """
     H, W = img.shape
-    R = int(np.ceil(3.0 * sigma))
+    R = int(np.ceil(2.5 * sigma))
     n = peaks.line.size
     pos = peaks.pos.copy()
     voff = np.zeros(n)
