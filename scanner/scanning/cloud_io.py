@@ -92,11 +92,19 @@ def write_cloud(
         with atomic_output(target) as tmp:
             if not o3d.t.io.write_point_cloud(str(tmp), cloud, write_ascii=False):
                 raise OSError(f"{target}: Open3D could not write the PCD file")
+            _usual_permissions(tmp)
         if meta:
             write_json_atomic(target.with_suffix(target.suffix + ".json"), meta)
     else:
         _write_e57(target, arrays, meta)
     return target
+
+
+def _usual_permissions(path: Path) -> None:
+    """Give a temporary file (created 0600) the mode a plain ``open`` would have (umask)."""
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(path, 0o666 & ~umask)
 
 
 def _ply_header(arrays: Mapping[str, NDArray], meta: Mapping[str, Any], n: int) -> tuple:
@@ -149,6 +157,7 @@ def _write_ply(target: Path, arrays: Mapping[str, NDArray], meta: Mapping[str, A
         with open(tmp, "wb") as fh:
             fh.write(header.encode("ascii", errors="replace"))
             record.tofile(fh)
+        _usual_permissions(tmp)
 
 
 def _write_e57(target: Path, arrays: Mapping[str, NDArray], meta: Mapping[str, Any]) -> None:
