@@ -59,6 +59,7 @@ def test_scan_options_and_resume(sweep, tmp_path, capsys):
         ("bad_extension", "expected a .ply, .pcd, .e57 file name"),
         ("other_size", "images are 320x240, the calibration is for 640x480"),
         ("no_session", "session folder not found"),
+        ("no_poses", "a sweep row needs a robot pose"),
     ],
 )
 def test_bad_input_exits_2_with_one_line(sweep, tmp_path, capsys, change, reason):
@@ -73,6 +74,20 @@ def test_bad_input_exits_2_with_one_line(sweep, tmp_path, capsys, change, reason
         write_calibration(cal, TableStepScene(width=640, height=480).calibration())
     elif change == "no_session":
         session = tmp_path / "nowhere"
+    elif change == "no_poses":
+        from dataclasses import replace
+
+        from scanner.session import read_session, write_session
+
+        s = read_session(session)
+        (tmp_path / "s" / "images").mkdir(parents=True)
+        frames = []
+        for f in s.frames:
+            image = tmp_path / "s" / "images" / f.laser_image.name
+            image.write_bytes(f.laser_image.read_bytes())
+            frames.append(replace(f, laser_image=image, base_from_flange=None))
+        write_session(tmp_path / "s", "sweep", s.width, s.height, frames)
+        session = tmp_path / "s"
     code = main(["scan", str(session), "--calibration", str(cal), "--out", str(out), "--quiet"])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2
