@@ -84,3 +84,13 @@ def test_failed_write_keeps_the_previous_file(tmp_path):
         write_calibration(path, bad)
     assert path.read_text() == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["c.json"]
+
+
+def test_written_files_get_ordinary_permissions(tmp_path):
+    import os
+    import stat
+
+    write_calibration(tmp_path / "c.json", paper_calibration())
+    umask = os.umask(0)
+    os.umask(umask)
+    assert stat.S_IMODE((tmp_path / "c.json").stat().st_mode) == 0o666 & ~umask
