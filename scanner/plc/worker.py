@@ -97,14 +97,15 @@ def _exit_with_parent(parent: int) -> None:
 
 
 def _child_main(
-    config: PlcConfig, method: str, ctx: JobContext, conn: Connection, parent: int
+    config: PlcConfig, method: str, ctx: JobContext, conn: Connection, parent: int, level: int
 ) -> None:
     _exit_with_parent(parent)
     # The service decides when a job stops (it cancels, then kills): Ctrl-C on the terminal or
     # SIGTERM to the whole control group must not kill the job behind its back.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    # Log like the service: same level, same format, to the same standard error.
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
     message: tuple[Any, ...]
     try:
         runner = load_runner(config.jobs.runner, config)
@@ -143,7 +144,7 @@ def run_in_process(
     receiver, sender = _MP.Pipe(duplex=False)
     proc = _MP.Process(
         target=_child_main,
-        args=(config, method, ctx, sender, os.getpid()),
+        args=(config, method, ctx, sender, os.getpid(), logging.getLogger().getEffectiveLevel()),
         name=f"plc-job-{ctx.job_id}",
         daemon=True,
     )
