@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calibration.detect import detect_target
-from calibration.extrinsics import estimate_pose, paper_pose
+from calibration.extrinsics import estimate_pose, paper_pose, project_target
 from calibration.hand_eye import (
     HandEyeResult,
     PosedView,
@@ -345,16 +345,18 @@ def calibrate_session(
     if method == "paper":
         he = _paper_hand_eye(session, posed, observations, stripes, camera, plane_res, target)  # type: ignore[arg-type]
     else:
-        views = [
-            PosedView(
-                f.id,
-                f.base_from_flange,  # type: ignore[arg-type]
-                observations[f.id].points_px,
-                observations[f.id].points_target,
-                cam_from_target[f.id],
+        views = []
+        for f in posed:
+            obs = observations[f.id]
+            px = obs.points_px
+            if isinstance(target, ConcentricCirclesTarget) and f.id in intr_pose:
+                # The concentric target's few named points are noisier than the view's pose
+                # from the intrinsics adjustment (every ring edge and line point): the hand-eye
+                # sees the features where that pose puts them.
+                px = project_target(camera, intr_pose[f.id], obs.points_target)
+            views.append(
+                PosedView(f.id, f.base_from_flange, px, obs.points_target, cam_from_target[f.id])  # type: ignore[arg-type]
             )
-            for f in posed
-        ]
         he = calibrate_hand_eye(views, camera, "default", refine_intrinsics=refine_intrinsics)
     if not he:
         raise ValueError(f"hand-eye ({method}): {he.reason}")
