@@ -244,12 +244,16 @@ def main() -> None:
     logging.basicConfig(level=logging.WARNING)
     if not args.skip_cells:
         print(
-            "| cell | method | normal err (deg) | d err (mm) | hand-eye rot (deg) | hand-eye trans (mm) | time (s) |"
+            "| cell | method | normal err (deg) | d err (mm) | hand-eye rot (deg) "
+            "| hand-eye trans (mm) | plane in flange: normal (deg) | d (mm) | time (s) |"
         )
-        print("|---|---|---|---|---|---|---|")
+        print("|---|---|---|---|---|---|---|---|---|")
         for cell in args.cells:
-            for c, m, na, dd, hr, ht, dt in bench_cell(cell, args.work):
-                print(f"| {c} | {m} | {na:.5f} | {dd:+.4f} | {hr:.5f} | {ht:.4f} | {dt:.1f} |")
+            for c, m, na, dd, hr, ht, fa, fd, dt in bench_cell(cell, args.work):
+                print(
+                    f"| {c} | {m} | {na:.5f} | {dd:+.4f} | {hr:.5f} | {ht:.4f} "
+                    f"| {fa:.5f} | {fd:+.4f} | {dt:.1f} |"
+                )
         print()
     root = real_data_root()
     if args.skip_real or not root.is_dir():
