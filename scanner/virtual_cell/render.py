@@ -223,7 +223,7 @@ def _shade(
     dist = np.linalg.norm(d_c, axis=1)
     cos_view = np.abs(np.einsum("ij,ij->i", normals, d_c)) / dist
     footprint = t[c] * dist / focal_px / np.maximum(cos_view, 0.1)
-    need_c = edge[c] < footprint
+    need_c = edge[c] < 0.75 * footprint  # a pixel corner is 0.71 px from its centre
     if laser is not None and f is not None:
         f_c = f[c]
         if laser.width_model == "surface":
