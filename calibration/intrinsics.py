@@ -626,7 +626,7 @@ def calibrate_intrinsics(
     method: Literal["default", "paper"] = "default",
     target: object | None = None,
     f_scale_px: float | None = None,
-    max_points_per_ring: int = 600,
+    max_points_per_ring: int = 200,
     fixed: tuple[str, ...] = (),
 ) -> IntrinsicsResult:
     """Calibrate the camera from observations of a planar target.
@@ -644,7 +644,10 @@ def calibrate_intrinsics(
         Residual size, pixels, beyond which the robust (soft L1) loss down-weights a point;
         by default 3 robust standard deviations of a first pass's residuals.
     max_points_per_ring : int
-        Ring edge points used per ring and view (evenly subsampled), for speed.
+        Ring edge points used per ring and view (evenly subsampled). Neighbouring edge
+        points share blur and pixel noise, so points a few pixels apart carry nearly all the
+        information: 200 keeps 20 views of 10 rings near 2 s of CPU and the standard
+        deviations honest (denser sampling shrinks them without adding information).
     fixed : tuple of str
         Names from ``PARAM_NAMES`` held at their initial value (distortion terms at 0), e.g.
         ``("p1", "p2", "k3")`` for the two-term radial model of Zhang's published result.
