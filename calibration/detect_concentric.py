@@ -462,7 +462,7 @@ def detect_concentric(
                 size,
                 KIND,
             )
-        # New conics for the rings that were not found in the coarse pass, by the pencil.
+        # The refitted conics replace the coarse ones; the pencil gives the centre again.
         conics = {k: v[1] for k, v in rings.items()}
         c_new = _pencil_centre(conics, radii, c)
         if c_new is None:
@@ -479,7 +479,7 @@ def detect_concentric(
                 "diameter lines not measurable between the rings", size, KIND
             )
         axis_lines, axis_pts = axis_res
-        # Include rings missed so far: predict from the pencil? Only rings measured are used.
+        # (A ring the coarse ray labelling missed is not recovered: only measured rings count.)
 
     ratio = min(_conic_axes_ratio(cn) for cn in conics.values())
     if ratio < np.cos(np.radians(s.max_tilt_deg)):
