@@ -19,7 +19,7 @@ from __future__ import annotations
 import csv
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -169,6 +169,27 @@ def _extract(session: Session, frame: Frame) -> NDArray:
     return np.column_stack([prof.u, prof.v])
 
 
+def _detect_one(args: tuple[str, TargetSpec]) -> TargetObservation:
+    from scanner.fileio import load_gray_image
+
+    return detect_target(load_gray_image(args[0]), args[1])
+
+
+def _detect_all(
+    session: Session, frames: list[Frame], target: TargetSpec, workers: int
+) -> Iterator[TargetObservation]:
+    """Detections of the frames' target images, in order (a process pool when workers > 1)."""
+    jobs = [(str(f.target_image), target) for f in frames]
+    if workers <= 1 or len(jobs) < 4:
+        for job in jobs:
+            yield _detect_one(job)
+        return
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        yield from pool.map(_detect_one, jobs, chunksize=2)
+
+
 def _paper_plane_views(
     frames: list[Frame],
     observations: dict[int, TargetObservation],
@@ -202,6 +223,7 @@ def calibrate_session(
     refine_intrinsics: bool = False,
     on_stage: Callable[[str], None] | None = None,
     observations: dict[int, TargetObservation] | None = None,
+    workers: int = 2,
 ) -> CalibrationResult:
     """Calibrate intrinsics, light plane and hand-eye from one calibration session.
 
@@ -221,6 +243,8 @@ def calibrate_session(
     observations : dict of int to TargetObservation, optional
         Detections from an earlier run on the same session (frame id -> observation), to
         skip the detection stage.
+    workers : int
+        Processes detecting the target in parallel (1: in this process).
 
     Returns
     -------
@@ -254,8 +278,15 @@ def calibrate_session(
     observations = {}
     rejected: list[dict[str, Any]] = []
     with_target = [f for f in session.frames if f.target_image is not None]
-    for f in _progress(with_target, progress, "detect"):
-        obs = given.get(f.id) or detect_target(session.load_target_image(f), target)
+    todo = [f for f in with_target if f.id not in given]
+    found_now = dict(
+        zip(
+            [f.id for f in todo],
+            _progress(_detect_all(session, todo, target, workers), progress, "detect", len(todo)),
+        )
+    )
+    for f in with_target:
+        obs = given.get(f.id) or found_now[f.id]
         observations[f.id] = obs
         if not obs:
             rejected.append({"frame_id": f.id, "stage": "detect", "reason": obs.reason})
@@ -320,16 +351,24 @@ def calibrate_session(
     stage("light plane")
     t1 = time.perf_counter()
     extent = target_extent_mm(target)
-    laser_views = [
-        LaserView(f.id, stripes[f.id], cam_from_target[f.id], extent)
-        for f in with_laser
-        if f.id in cam_from_target and len(stripes[f.id])
-    ]
-    plane_default = calibrate_light_plane(laser_views, camera)
     plane_paper = None
+    along_ink: set[int] = set()
     if isinstance(target, ConcentricCirclesTarget):
         pviews = _paper_plane_views(session.frames, observations, stripes)
         plane_paper = paper_light_plane(pviews, camera, target.radius_mm)
+        # A stripe lying along a printed diameter line runs on ink its whole length, which
+        # biases its centre: those rows serve the paper's method, not the default fit.
+        along_ink = {v.frame_id for v in pviews}
+    laser_views = [
+        LaserView(f.id, stripes[f.id], cam_from_target[f.id], extent)
+        for f in with_laser
+        if f.id in cam_from_target and len(stripes[f.id]) and f.id not in along_ink
+    ]
+    plane_default = calibrate_light_plane(laser_views, camera)
+    skipped = [
+        {"frame_id": i, "reason": "stripe along a printed diameter line (paper light-plane row)"}
+        for i in sorted(along_ink)
+    ]
     plane_res = plane_paper if method == "paper" else plane_default
     if plane_res is None or not plane_res:
         why = plane_res.reason if plane_res is not None else "no light-plane views"
@@ -385,6 +424,7 @@ def calibrate_session(
         "light_plane": plane_res.quality(),
         "hand_eye": he.quality(),
         "rejected": rejected,
+        "skipped": skipped if method == "default" else [],
         "warnings": warnings,
         "timings": timings,
     }
