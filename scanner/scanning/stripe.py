@@ -30,6 +30,7 @@ lines carry :attr:`StripeFlag.AMBIGUOUS`.
 
 from __future__ import annotations
 
+import functools
 import logging
 from dataclasses import dataclass, field
 from enum import IntFlag
@@ -251,6 +252,9 @@ def orientation_from_image(image: NDArray) -> str:
 def _median(values: NDArray) -> float:
     """Median, by histogram for integer images (several times faster than partitioning)."""
     v = np.asarray(values).reshape(-1)
+    if 0 < v.size <= 4096 and v.dtype in (np.uint8, np.uint16):  # lower median, as below
+        k = (v.size - 1) // 2
+        return float(np.partition(v, k)[k])
     if v.dtype in (np.uint8, np.uint16) and v.size:
         counts = np.bincount(v, minlength=1)
         return float(np.searchsorted(np.cumsum(counts), (v.size + 1) // 2))
@@ -316,10 +320,13 @@ def _measure(
     hw: int,
     sat: float,
     count_above: float | None = None,
+    typical: float | None = None,
 ) -> tuple[_Peaks, NDArray | None]:
     """Centre of gravity around integer peak columns ``cols`` on ``lines`` (vectorised).
 
     Returns the peaks and, when ``count_above`` is given, how many window pixels exceed it.
+    ``typical``: the batch's typical width (windows wider than 1.3 times it are searched for a
+    second maximum); ``None``: the median width of this batch.
     """
     W = img.shape[1]
     flat = img.reshape(-1)
@@ -376,8 +383,9 @@ def _measure(
     # would pull the centre of gravity between the two: measure those on the peak alone. Only
     # windows wider than usual can hold two maxima, so only those are searched.
     double = np.zeros(len(cols), bool)
-    if len(cols) > 2:
-        typical = np.partition(width, width.size // 2)[width.size // 2]
+    if len(cols) > 2 or typical is not None:
+        if typical is None:
+            typical = np.partition(width, width.size // 2)[width.size // 2]
         wide = np.flatnonzero(width > 1.3 * typical)
         if wide.size:
             ww = w[wide]
@@ -425,6 +433,128 @@ def _measure(
         slope,
     )
     return peaks, counts
+
+
+@functools.lru_cache(maxsize=32)
+def _window_matrix(hw: int) -> NDArray:
+    """``(6, 2 hw + 5)`` rows giving, from a window's pixels, quantities linear in them.
+
+    Peak pixel; contrast (peak minus the linear background's level at the peak); background
+    slope; and the background-subtracted window's sum and first and second moments about the
+    peak pixel (``x = -hw..hw``). The background is the line through the means of the two
+    flank pixels on each side (at ``x = -/+ (hw + 1.5)``).
+    """
+    n = 2 * hw + 5
+    x = np.arange(-hw, hw + 1, dtype=np.float64)
+    left = np.zeros(n)
+    left[:2] = 0.5
+    right = left[::-1]
+    mean = 0.5 * (left + right)
+    slope = (right - left) / (2 * hw + 3)
+    core = np.zeros(n)
+    core[2:-2] = 1.0
+    peak = np.zeros(n)
+    peak[hw + 2] = 1.0
+    xw = np.zeros(n)
+    xw[2:-2] = x
+    x2 = float(np.sum(x * x))
+    m = np.stack(
+        [
+            peak,
+            peak - mean,
+            slope,
+            core - (2 * hw + 1) * mean,  # sum x^0 (w - mean - slope x); sum x = 0
+            xw - x2 * slope,  # sum x (w - mean - slope x)
+            xw * xw - x2 * mean,  # sum x^2 (w - mean - slope x); sum x^3 = 0
+        ]
+    ).astype(np.float32)
+    m.flags.writeable = False
+    return m
+
+
+def _row_windows(img: NDArray, size: int, length: int | None = None) -> NDArray:
+    """Every run of ``size`` consecutive pixels of the flat image, as rows of a view."""
+    flat = img.reshape(-1)
+    rows = flat.size - size + 1 if length is None else length
+    step = flat.strides[0]
+    return np.ndarray((rows, size), flat.dtype, flat, 0, (step, step))
+
+
+def _measure_many(
+    img: NDArray,
+    lines: NDArray,
+    cols: NDArray,
+    hw: int,
+    sat: float,
+    clear: NDArray | None = None,
+) -> _Peaks:
+    """:func:`_measure` for a whole frame's peaks, the common case by one matrix product.
+
+    The background-subtracted centre of gravity's sums are linear in the window's pixels, so
+    those of every peak come from one product of the gathered windows with a fixed matrix
+    (:func:`_window_matrix`). The uncommon peaks (a window reaching the border, saturation, a
+    window wider than usual that may hold two maxima) are measured again by :func:`_measure`,
+    with the same typical width, and replace those. ``clear``: an array of the image's shape
+    whose pixels in each peak's window ``cols - hw .. cols + hw`` (clipped to the image) are
+    set to 0.
+    """
+    n = cols.size
+    W = img.shape[1]
+    if n <= 2 or W < 2 * hw + 5:
+        if clear is not None:
+            _clear_windows(clear, lines, cols, hw)
+        return _measure(img, lines, cols, hw, sat)[0]
+    near = np.abs(cols - 0.5 * (W - 1)) > 0.5 * (W - 1) - hw - 2
+    any_near = bool(near.any())
+    start = lines * W + (np.clip(cols, hw + 2, W - hw - 3) if any_near else cols)
+    start -= hw + 2
+    vals = _row_windows(img, 2 * hw + 5)[start]  # one gather of n runs of pixels
+    if clear is not None:
+        if any_near:
+            _clear_windows(clear, lines, cols, hw)
+        else:
+            _row_windows(clear, 2 * hw + 1)[start + 2] = 0  # cols - hw .. cols + hw
+    # float32 product: exact for 8-bit frames (integer sums below 2**24).
+    res = _window_matrix(hw) @ vals.T.astype(np.float32)
+    peak, contrast, slope, s0, s1, s2 = res
+    ok = s0 > 0
+    if not ok.all():
+        s0 = np.where(ok, s0, np.float32(1.0))
+        contrast[~ok] = 0.0
+    mu = s1 / s0
+    var = s2 / s0
+    var -= mu * mu
+    np.maximum(var, 0.0, out=var)
+    width = np.sqrt(var, out=var)
+    width *= np.float32(_FWHM_PER_SIGMA)
+    far_w = width[~near] if any_near else width
+    if far_w.size == 0:
+        return _measure(img, lines, cols, hw, sat)[0]
+    typical = float(np.partition(far_w, far_w.size // 2)[far_w.size // 2])
+    odd = (peak >= sat) | (width > 1.3 * typical)
+    if any_near:
+        odd |= near
+    peaks = _Peaks(
+        lines.astype(np.int64, copy=False),
+        cols + mu,
+        peak,
+        contrast,
+        width,
+        np.zeros(n, np.uint8),
+        slope,
+    )
+    special = np.flatnonzero(odd)
+    if special.size:
+        sub, _ = _measure(img, lines[special], cols[special], hw, sat, typical=typical)
+        for k in _Peaks.__dataclass_fields__:
+            getattr(peaks, k)[special] = getattr(sub, k)
+    return peaks
+
+
+def _clear_windows(clear: NDArray, lines: NDArray, cols: NDArray, hw: int) -> None:
+    W = clear.shape[1]
+    c = np.clip(cols[:, None] + np.arange(-hw, hw + 1), 0, W - 1)
+    clear.reshape(-1)[c + (lines * W)[:, None]] = 0
 
 
 def _saturated_centres(
@@ -516,8 +646,14 @@ def auto_half_window(img: NDArray, noise: float, step: int = 16) -> int:
     return int(np.clip(np.rint(2.7 * sigma), 3, 20))
 
 
-def _primary_and_secondary(img: NDArray, options: StripeOptions, noise: float, hw: int) -> _Peaks:
-    """All peaks of the working-orientation image (rows are scan lines)."""
+def _primary_and_secondary(
+    img: NDArray, options: StripeOptions, noise: float, hw: int
+) -> tuple[_Peaks, bool]:
+    """All peaks of the working-orientation image (rows are scan lines).
+
+    Returns the peaks and whether the lines may hold several peaks (``False``: at most one per
+    line, in line order).
+    """
     H, W = img.shape
     sat = _saturation_level(img, options)
     min_contrast = options.min_contrast
@@ -534,15 +670,15 @@ def _primary_and_secondary(img: NDArray, options: StripeOptions, noise: float, h
     else:
         bg_level = _median(img[:: max(1, H // 32), :: max(1, W // 32)])
     thr = bg_level + thr_contrast
-    prim, in_win = _measure(img, lines, cols, hw, sat, count_above=thr)
+    # Pixels above the level, the primary windows cleared: what remains is elsewhere on its line.
     if img.dtype == np.uint8:
-        _, mask = cv2.threshold(img, min(thr, 254.0), 1, cv2.THRESH_BINARY)
+        _, mask = cv2.threshold(img, min(thr, 255.0), 1, cv2.THRESH_BINARY)
     elif img.dtype == np.float32:
         mask = cv2.threshold(img, thr, 1, cv2.THRESH_BINARY)[1].astype(np.uint8)
     else:
         mask = (img > thr).astype(np.uint8)
-    count_all = cv2.reduce(mask, 1, cv2.REDUCE_SUM, dtype=cv2.CV_32S).reshape(-1)
-    extra = np.flatnonzero(count_all > in_win)
+    prim = _measure_many(img, lines, cols, hw, sat, clear=mask)
+    extra = np.flatnonzero(cv2.reduce(mask, 1, cv2.REDUCE_MAX).reshape(-1))
     parts = [prim]
     if extra.size:
         # The global level is only a first sieve: a further peak must clear its own line's
@@ -559,6 +695,13 @@ def _primary_and_secondary(img: NDArray, options: StripeOptions, noise: float, h
         extra = extra[above.sum(axis=1) > in_line_win.sum(axis=1)]
         if extra.size:
             parts.append(_secondary_peaks(img, extra, cols[extra], hw, sat, thr))
+    if len(parts) == 1:
+        # One peak per line: the line's brightest is the peak itself, only the noise and
+        # absolute thresholds apply.
+        keep = prim.contrast >= thr_contrast
+        if np.all(keep):
+            return prim, False
+        return prim.take(np.flatnonzero(keep)), False
     peaks = _Peaks.concat(parts)
 
     # Contrast thresholds: noise, absolute, and relative to the line's brightest peak.
@@ -567,9 +710,7 @@ def _primary_and_secondary(img: NDArray, options: StripeOptions, noise: float, h
         peaks.contrast >= options.min_relative_peak * best[peaks.line]
     )
     peaks = peaks.take(np.flatnonzero(keep))
-    if len(parts) > 1:
-        peaks = _dedupe(peaks, hw)
-    return peaks
+    return _dedupe(peaks, hw), True
 
 
 def _line_max(line: NDArray, value: NDArray, n_lines: int) -> NDArray:
@@ -606,7 +747,7 @@ def _secondary_peaks(
     r, c = r[far], c[far]
     if r.size == 0:
         return _empty_peaks()
-    return _measure(img, lines[r], c, hw, sat)[0]
+    return _measure_many(img, lines[r], c, hw, sat)
 
 
 def _empty_peaks() -> _Peaks:
@@ -813,16 +954,17 @@ def _curvature_shift(
     shift = np.zeros(peaks.line.size)
     if peaks.line.size < 2 * k + 1:
         return shift
+    # Segments as index arrays, and whether each has one point per line.
     if np.all(peaks.line[1:] > peaks.line[:-1]):
-        labels = np.zeros(peaks.line.size, np.int64)
+        groups = [(np.arange(peaks.line.size), True)]
     else:
         labels = _segments(peaks, link_px)
+        groups = [(np.flatnonzero(labels == lab), False) for lab in np.unique(labels)]
     x = np.arange(-k, k + 1, dtype=np.float64)
     q = x * x - np.mean(x * x)
     w2 = q / np.sum(q * q)  # least-squares quadratic coefficient
     w1 = x / np.sum(x * x)  # least-squares slope (symmetric window)
-    for lab in np.unique(labels):
-        sel = np.flatnonzero(labels == lab)
+    for sel, unique in groups:
         if sel.size < 2 * k + 1:
             continue
         ln = peaks.line[sel]
@@ -830,17 +972,24 @@ def _curvature_shift(
         span = hi - lo + 1
         if span < 2 * k + 1:
             continue
-        counts = np.bincount(ln - lo, minlength=span)
-        dense = np.full(span, np.nan)
-        one = counts[ln - lo] == 1
-        dense[ln[one] - lo] = peaks.pos[sel[one]]
+        if unique:
+            one = np.ones(sel.size, bool)
+            dense = np.full(span, np.nan)  # NaN: lines without a point
+            dense[ln - lo] = peaks.pos[sel]
+        else:
+            counts = np.bincount(ln - lo, minlength=span)
+            dense = np.full(span, np.nan)
+            one = counts[ln - lo] == 1
+            dense[ln[one] - lo] = peaks.pos[sel[one]]
         # A jump between neighbouring lines (another surface) breaks the neighbourhood.
-        jump = np.zeros(span)
-        jump[1:] = np.where(np.abs(np.diff(dense)) > link_px, np.nan, 0.0)
+        steps = np.abs(np.diff(dense)) > link_px
         c2 = np.convolve(dense, w2[::-1], mode="same")
         c1 = np.convolve(dense, w1[::-1], mode="same")
-        broken = np.convolve(jump, np.ones(2 * k + 1), mode="same")
-        valid = np.isfinite(c2) & np.isfinite(c1) & np.isfinite(broken)
+        valid = np.isfinite(c2) & np.isfinite(c1)
+        if steps.any():
+            jump = np.zeros(span)
+            jump[1:] = np.where(steps, np.nan, 0.0)
+            valid &= np.isfinite(np.convolve(jump, np.ones(2 * k + 1), mode="same"))
         valid[:k] = False
         valid[span - k :] = False
         along = np.where(valid, sigma**2 * c2 / (1.0 + c1 * c1), 0.0)  # sigma^2/2 * 2 c2
@@ -925,8 +1074,10 @@ def extract_stripe(
 
     hw = opts.half_window_px
     hw = auto_half_window(work, noise) if hw is None else int(hw)
-    peaks = _primary_and_secondary(work, opts, noise, hw)
-    peaks = _resolve_multi(peaks, opts)
+    peaks, multi = _primary_and_secondary(work, opts, noise, hw)
+    if multi:
+        peaks = _resolve_multi(peaks, opts)
+        multi = not np.all(peaks.line[1:] > peaks.line[:-1])
     if peaks.line.size == 0:
         empty = StripeProfile.empty(orientation, mode)
         return StripeProfile(
@@ -955,21 +1106,21 @@ def extract_stripe(
         pos, voff = _refine_precise(work, peaks, sigma)
         pos = pos - _curvature_shift(peaks, sigma, work.shape[0], opts.link_px)
         across = across + voff
-    if np.all(peaks.line[1:] > peaks.line[:-1]):
-        order = slice(None)
-    else:
+    if multi:
         order = np.lexsort((pos, peaks.line))
+        pos, across = pos[order], across[order]
+        peaks = peaks.take(order)
     if orientation == "rows":
-        u, v = pos[order], across[order]
+        u, v = pos, across
     else:
-        u, v = across[order], pos[order]
+        u, v = across, pos
     return StripeProfile(
         u=np.ascontiguousarray(u, dtype=np.float64),
         v=np.ascontiguousarray(v, dtype=np.float64),
-        intensity=peaks.peak[order].astype(np.float32),
-        width_px=peaks.width[order].astype(np.float32),
-        flags=peaks.flags[order].astype(np.uint8),
-        line=peaks.line[order].astype(np.int32),
+        intensity=peaks.peak.astype(np.float32, copy=False),
+        width_px=peaks.width.astype(np.float32, copy=False),
+        flags=peaks.flags.astype(np.uint8, copy=False),
+        line=peaks.line.astype(np.int32),
         orientation=orientation,
         mode=mode,
         noise=noise,
