@@ -609,7 +609,8 @@ def _linear_hand_eye_from_points(groups: dict[str, list[StripePointView]]) -> ND
     _, sv, vt = np.linalg.svd(all_p - centre)
     if sv[1] < 1e-6 * max(sv[0], 1e-12):
         raise ValueError("paper hand-eye: the stripe points are collinear")
-    e1, e2, n = vt[0], vt[1], vt[2]
+    e1, e2 = vt[0], vt[1]
+    n = np.cross(e1, e2)  # right-handed basis: R n = R e1 x R e2
     if sv[2] > 1e-2 * sv[0]:
         return _linear_hand_eye_general(groups)
     rows, rhs = [], []

@@ -195,3 +195,30 @@ def test_grid_numbered_from_the_opposite_corner_is_relabelled():
     assert any("relabelled" in w and "2" in w and "5" in w for w in res.warnings)
     dr, dt = _errors(res.flange_from_cam)
     assert dr < 0.02 and dt < 0.1
+
+
+def test_paper_hand_eye_with_stripe_points_in_the_light_plane():
+    # As in use: every stripe point lies in the light plane (camera frame), which leaves the
+    # plain linear solve for R and t rank-deficient.
+    rng = np.random.default_rng(9)
+    n = np.array([0.9, 0.0, 0.3]) / np.linalg.norm([0.9, 0.0, 0.3])
+    d = -float(n @ [0.0, 0.0, 350.0])
+    e1 = np.cross(n, [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(n, e1)
+    views = []
+    for k, p_t in enumerate(([0.0, 0, 0], [80.0, 0, 0], [0.0, 80, 0])):
+        p_base = transform_points(S.BASE_FROM_TARGET, np.array([p_t]))[0]
+        for j in range(4):
+            p_cam = -d * n + rng.uniform(-40, 40) * e1 + rng.uniform(-40, 40) * e2
+            rot = Rotation.from_rotvec(rng.normal(0, 0.3, 3)) * Rotation.from_euler(
+                "x", 180, degrees=True
+            )
+            base_from_cam = make_transform(rot, p_base - rot.apply(p_cam))
+            bf = base_from_cam @ invert_transform(S.FLANGE_FROM_CAM)
+            ct = invert_transform(base_from_cam) @ S.BASE_FROM_TARGET
+            views.append(StripePointView(4 * k + j, "OAC"[k], bf, p_cam, ct))
+    res = paper_hand_eye(views, 80.0)
+    assert res, res.reason
+    dr, dt = _errors(res.flange_from_cam)
+    assert dr < 1e-6 and dt < 1e-5
