@@ -255,6 +255,12 @@ def _median(values: NDArray) -> float:
     if 0 < v.size <= 4096 and v.dtype in (np.uint8, np.uint16):  # lower median, as below
         k = (v.size - 1) // 2
         return float(np.partition(v, k)[k])
+    if v.dtype.kind == "f" and v.size:  # as np.median: the two middle values' mean
+        k = v.size // 2
+        if v.size % 2:
+            return float(np.partition(v, k)[k])
+        part = np.partition(v, (k - 1, k))
+        return 0.5 * (float(part[k - 1]) + float(part[k]))
     if v.dtype in (np.uint8, np.uint16) and v.size:
         counts = np.bincount(v, minlength=1)
         return float(np.searchsorted(np.cumsum(counts), (v.size + 1) // 2))
@@ -939,6 +945,20 @@ def _refine_precise(img: NDArray, peaks: _Peaks, sigma: float) -> tuple[NDArray,
     return pos, voff
 
 
+@functools.lru_cache(maxsize=8)
+def _local_fit_kernels(k: int) -> tuple[NDArray, NDArray]:
+    """Convolution kernels of a least-squares line's slope and parabola's ``x**2`` coefficient
+    through ``2 k + 1`` equally spaced samples (reversed for :func:`numpy.convolve`)."""
+    x = np.arange(-k, k + 1, dtype=np.float64)
+    q = x * x - np.mean(x * x)
+    w2 = q / np.sum(q * q)  # least-squares quadratic coefficient
+    w1 = x / np.sum(x * x)  # least-squares slope (symmetric window)
+    w1, w2 = np.ascontiguousarray(w1[::-1]), np.ascontiguousarray(w2[::-1])
+    w1.flags.writeable = False
+    w2.flags.writeable = False
+    return w1, w2
+
+
 def _curvature_shift(
     peaks: _Peaks, sigma: float, n_lines: int, link_px: float, k: int = 6
 ) -> NDArray:
@@ -960,10 +980,7 @@ def _curvature_shift(
     else:
         labels = _segments(peaks, link_px)
         groups = [(np.flatnonzero(labels == lab), False) for lab in np.unique(labels)]
-    x = np.arange(-k, k + 1, dtype=np.float64)
-    q = x * x - np.mean(x * x)
-    w2 = q / np.sum(q * q)  # least-squares quadratic coefficient
-    w1 = x / np.sum(x * x)  # least-squares slope (symmetric window)
+    w1, w2 = _local_fit_kernels(k)
     for sel, unique in groups:
         if sel.size < 2 * k + 1:
             continue
@@ -983,8 +1000,8 @@ def _curvature_shift(
             dense[ln[one] - lo] = peaks.pos[sel[one]]
         # A jump between neighbouring lines (another surface) breaks the neighbourhood.
         steps = np.abs(np.diff(dense)) > link_px
-        c2 = np.convolve(dense, w2[::-1], mode="same")
-        c1 = np.convolve(dense, w1[::-1], mode="same")
+        c2 = np.convolve(dense, w2, mode="same")
+        c1 = np.convolve(dense, w1, mode="same")
         valid = np.isfinite(c2) & np.isfinite(c1)
         if steps.any():
             jump = np.zeros(span)
@@ -1102,7 +1119,7 @@ def extract_stripe(
         if opts.sigma_px is not None:
             sigma = float(opts.sigma_px)
         else:
-            sigma = float(np.clip(np.median(peaks.width) / _FWHM_PER_SIGMA, 1.0, 3.0))
+            sigma = float(np.clip(_median(peaks.width) / _FWHM_PER_SIGMA, 1.0, 3.0))
         pos, voff = _refine_precise(work, peaks, sigma)
         pos = pos - _curvature_shift(peaks, sigma, work.shape[0], opts.link_px)
         across = across + voff
