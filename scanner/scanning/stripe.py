@@ -493,6 +493,7 @@ def _measure_many(
     hw: int,
     sat: float,
     clear: NDArray | None = None,
+    typical: float | None = None,
 ) -> _Peaks:
     """:func:`_measure` for a whole frame's peaks, the common case by one matrix product.
 
@@ -502,7 +503,8 @@ def _measure_many(
     window wider than usual that may hold two maxima) are measured again by :func:`_measure`,
     with the same typical width, and replace those. ``clear``: an array of the image's shape
     whose pixels in each peak's window ``cols - hw .. cols + hw`` (clipped to the image) are
-    set to 0.
+    set to 0. ``typical``: the typical width; ``None``: the median over the windows inside the
+    image.
     """
     n = cols.size
     W = img.shape[1]
@@ -533,10 +535,11 @@ def _measure_many(
     np.maximum(var, 0.0, out=var)
     width = np.sqrt(var, out=var)
     width *= np.float32(_FWHM_PER_SIGMA)
-    far_w = width[~near] if any_near else width
-    if far_w.size == 0:
-        return _measure(img, lines, cols, hw, sat)[0]
-    typical = float(np.partition(far_w, far_w.size // 2)[far_w.size // 2])
+    if typical is None:
+        far_w = width[~near] if any_near else width
+        if far_w.size == 0:
+            return _measure(img, lines, cols, hw, sat)[0]
+        typical = float(np.partition(far_w, far_w.size // 2)[far_w.size // 2])
     odd = (peak >= sat) | (width > 1.3 * typical)
     if any_near:
         odd |= near

@@ -275,3 +275,85 @@ def test_precise_mode_corrects_the_smoothing_bias_of_curved_stripes(curvature):
     err = (p.u - truth[p.line])[np.abs(p.line - 120) < 20]
     # Uncorrected, Gaussian smoothing moves the ridge by ~sigma^2 pos'' / 2 (0.009-0.02 px).
     assert abs(np.mean(err)) < 0.004
+
+
+# --------------------------------------------------------------------------------------------
+# The vectorised common case against the general per-peak measurement.
+
+
+def test_batched_window_measurement_matches_the_general_one():
+    from scanner.scanning.stripe import _measure, _measure_many
+
+    # Ordinary peaks, peaks at both borders, saturated ones and two maxima in one window.
+    segs = [
+        StripeSegment((0, 240), (150.0, 0.1), amplitude=170.0),
+        StripeSegment((0, 40), (1.0, 0.0), amplitude=150.0),
+        StripeSegment((40, 80), (318.2, 0.0), amplitude=150.0),
+        StripeSegment((80, 120), (60.0, 0.0), amplitude=900.0),
+        StripeSegment((120, 160), (64.0, 0.0), amplitude=160.0),
+        StripeSegment((120, 160), (69.0, 0.0), amplitude=150.0),
+    ]
+    for dtype, scale in ((np.uint8, 1.0), (np.uint16, 64.0)):
+        img, _ = render_stripes(
+            SHAPE,
+            [StripeSegment(s.lines, s.coeffs, s.amplitude * scale, s.sigma_px) for s in segs],
+            noise=1.0 * scale,
+            seed=12,
+            dtype=dtype,
+            full_scale=255.0 * scale,
+        )
+        lines = np.repeat(np.arange(SHAPE[0]), 2)
+        cols = np.stack([np.argmax(img[:, :100], axis=1), 100 + np.argmax(img[:, 100:], axis=1)])
+        cols = cols.T.reshape(-1)
+        sat = 255.0 * scale
+        mask = np.ones(SHAPE, np.uint8)
+        # The same "wider than usual" width (the default is the median over the windows
+        # inside the image, the general function's over all of its batch).
+        got = _measure_many(img, lines, cols, 4, sat, clear=mask, typical=3.5)
+        want, _ = _measure(img, lines, cols, 4, sat, typical=3.5)
+        default = _measure_many(img, lines, cols, 4, sat)
+        assert np.mean(default.flags == want.flags) > 0.99
+        np.testing.assert_array_equal(got.line, want.line)
+        np.testing.assert_array_equal(got.flags, want.flags)
+        for name in ("peak", "slope"):
+            np.testing.assert_allclose(getattr(got, name), getattr(want, name), atol=1e-3 * scale)
+        real = want.contrast > 20 * scale  # not the noise maxima of the lines' empty halves
+        assert np.count_nonzero(real) > 300
+        np.testing.assert_allclose(got.contrast[real], want.contrast[real], atol=1e-3 * scale)
+        np.testing.assert_allclose(got.pos[real], want.pos[real], atol=1e-5)
+        np.testing.assert_allclose(got.width[real], want.width[real], atol=1e-4)
+        assert np.any(want.flags & StripeFlag.BORDER)
+        assert np.any(want.flags & StripeFlag.SATURATED)
+        assert np.any(want.flags & StripeFlag.AMBIGUOUS)
+        # Exactly each window (clipped to the image) was cleared.
+        expect = np.ones(SHAPE, np.uint8)
+        for ln, c in zip(lines, cols, strict=True):
+            expect[ln, max(c - 4, 0) : c + 5] = 0
+        np.testing.assert_array_equal(mask, expect)
+
+
+def test_a_second_stripe_just_outside_the_window_is_found():
+    # The window is 4 px either side: a stripe 9 px away is another peak on every line.
+    a = StripeSegment((0, SHAPE[0]), (100.0, 0.0), amplitude=170.0, sigma_px=1.0)
+    b = StripeSegment((0, SHAPE[0]), (109.0, 0.0), amplitude=150.0, sigma_px=1.0)
+    img, _ = render_stripes(SHAPE, [a, b], noise=1.0, seed=13)
+    p = extract_stripe(img, mode="fast", orientation="rows", half_window_px=4)
+    assert np.all(np.bincount(p.line, minlength=SHAPE[0]) == 2)
+
+
+def test_odd_sizes_read_only_and_float_frames_give_the_same_profile():
+    img, truth = _single(seed=14)
+    ref = extract_stripe(img, mode="precise", orientation="rows")
+    ro = img.copy()
+    ro.setflags(write=False)
+    for other in (ro, img.astype(np.float32), np.asfortranarray(img)):
+        p = extract_stripe(other, mode="precise", orientation="rows")
+        np.testing.assert_allclose(p.u, ref.u, atol=1e-5)
+        np.testing.assert_array_equal(p.flags, ref.flags)
+    # Narrower than a window, and a few lines only: still measured (the general path).
+    narrow = np.ascontiguousarray(img[:9, 134:146])
+    for mode in ("fast", "precise"):
+        p = extract_stripe(narrow, mode=mode, orientation="rows", half_window_px=4, noise=1.0)
+        err = _errors(p, truth[0][0], truth[0][1] - 134)
+        assert len(p) == 9
+        assert np.all(np.abs(err) < 0.2)
