@@ -65,7 +65,13 @@ def test_target_extent_covers_the_printed_features():
 @pytest.fixture(scope="module")
 def modern_cell(tmp_path_factory):
     from scanner.virtual_cell.simulate import simulate_cell
+    from scanner.virtual_cell.truth import read_truth
 
+    # Rendering the cell takes minutes: SCANNER_TEST_MODERN_CELL may name a folder that
+    # simulate_cell("modern", ..., seed=0) already wrote.
+    cached = os.environ.get("SCANNER_TEST_MODERN_CELL")
+    if cached and (Path(cached) / "truth.json").is_file():
+        return Path(cached), read_truth(Path(cached) / "truth.json")
     out = tmp_path_factory.mktemp("modern")
     truth = simulate_cell("modern", out, seed=0, sessions=("calibration",), workers=2)
     return out, truth
