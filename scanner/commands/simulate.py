@@ -25,7 +25,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="print another target at the same poses: concentric (default), chessboard, "
         "circle_grid, or a configs/targets name or path",
     )
-    p.add_argument("--frames-sweep", type=int, default=None, help="number of sweep frames")
+    p.add_argument(
+        "--sweep-frames", "--frames-sweep", type=int, default=None, help="number of sweep frames"
+    )
     p.add_argument("--workers", type=int, default=2, help="rendering processes (default 2)")
     p.add_argument(
         "--sessions",
@@ -44,14 +46,14 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(
             f"--sessions: expected calibration, check and/or sweep, got {args.sessions!r}"
         )
-    if args.frames_sweep is not None and args.frames_sweep < 1:
-        raise ValueError(f"--frames-sweep: expected >= 1, got {args.frames_sweep}")
+    if args.sweep_frames is not None and args.sweep_frames < 1:
+        raise ValueError(f"--sweep-frames: expected >= 1, got {args.sweep_frames}")
     truth = simulate_cell(
         args.cell,
         args.out,
         seed=args.seed,
         target=args.target,
-        sweep_frames=args.frames_sweep,
+        sweep_frames=args.sweep_frames,
         workers=max(1, args.workers),
         sessions=sessions,
         progress=True,
