@@ -92,6 +92,7 @@ def run_demo(
     from scanner.calibration_file import write_calibration
     from scanner.scanning.pipeline import ScanOptions, scan_session
     from scanner.session import read_session
+    from scanner.virtual_cell.cell import load_cell
     from scanner.virtual_cell.simulate import simulate_cell
     from scanner.virtual_cell.truth import read_truth
 
@@ -115,9 +116,12 @@ def run_demo(
         truth_path = sessions / "truth.json"
         if reuse and truth_path.is_file():
             truth = read_truth(truth_path)
+            frames = sweep_frames or load_cell(cell).sweep.frames
             if (
                 truth.cell == Path(cell).stem
                 and truth.seed == seed
+                and "sweep" in truth.sessions
+                and len(truth.sessions["sweep"].frames) == frames
                 and all(
                     (sessions / s / "session.json").is_file()
                     for s in ("calibration", "check", "sweep")
