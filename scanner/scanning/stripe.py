@@ -261,6 +261,9 @@ def _median(values: NDArray) -> float:
             return float(np.partition(v, k)[k])
         part = np.partition(v, (k - 1, k))
         return 0.5 * (float(part[k - 1]) + float(part[k]))
+    if v.dtype == np.uint8 and v.size < 2**24:  # float32 counts stay exact
+        counts = cv2.calcHist([v], [0], None, [256], [0, 256]).reshape(-1)
+        return float(np.searchsorted(np.cumsum(counts), (v.size + 1) // 2))
     if v.dtype in (np.uint8, np.uint16) and v.size:
         counts = np.bincount(v, minlength=1)
         return float(np.searchsorted(np.cumsum(counts), (v.size + 1) // 2))
@@ -275,8 +278,7 @@ def estimate_noise(image: NDArray, step: int = 32) -> float:
     """
     rows = np.asarray(image)[::step]
     if rows.dtype in (np.uint8, np.uint16):
-        a, b = rows[:, 1:], rows[:, :-1]
-        diff = np.maximum(a, b) - np.minimum(a, b)  # |a - b| without a wider dtype
+        diff = cv2.absdiff(rows[:, 1:], rows[:, :-1])  # |a - b| without a wider dtype
     else:
         diff = np.abs(np.diff(rows.astype(np.float32), axis=1))
     mad = _median(diff)
@@ -647,7 +649,8 @@ def auto_half_window(img: NDArray, noise: float, step: int = 16) -> int:
     H = img.shape[0]
     lines = np.arange(0, H, step)
     cols = img[::step].argmax(axis=1)
-    m, _ = _measure(img, lines, cols, 10, float("inf"))
+    # Widths and contrasts only: no search for second maxima (it moves centres, not widths).
+    m = _measure_many(img, lines, cols, 10, float("inf"), typical=float("inf"))
     ok = m.contrast > 10.0 * noise
     if np.count_nonzero(ok) < 3:
         return 6
