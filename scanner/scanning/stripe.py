@@ -878,47 +878,51 @@ def _refine_precise(img: NDArray, peaks: _Peaks, sigma: float) -> tuple[NDArray,
     n = peaks.line.size
     pos = peaks.pos.copy()
     voff = np.zeros(n)
-    sat = (peaks.flags & StripeFlag.SATURATED) != 0
+    sat = (peaks.flags & np.uint8(StripeFlag.SATURATED)) != 0
     c0 = np.rint(pos).astype(np.int64)
     delta = pos - c0
     j = np.arange(-R, R + 1)
     line = peaks.line
     rows_in = (line >= R) & (line < H - R)
     cols_in = (c0 >= R) & (c0 < W - R)
-    # One broadcast index per patch; rows or columns past the border are clamped by ``clip``
-    # (their points fall back to the 1-D estimate or keep the fast one, below).
-    offsets = (j[:, None] * W + j[None, :]).astype(np.int64)
-    idx = (line * W + c0)[:, None, None] + offsets[None, :, :]
-    patch = img.reshape(-1).take(idx, mode="clip").astype(np.float32)  # (n, P, P)
+    # One broadcast index for all patches, ordered (row v, point, column u); rows or columns
+    # past the border are clamped by ``clip`` (their points fall back to the 1-D estimate or
+    # keep the fast one, below).
+    P = j.size
+    idx = (j * W)[:, None] + ((line * W + c0)[:, None] + j).reshape(-1)  # (P, n * P)
+    patch = img.reshape(-1).take(idx, mode="clip").astype(np.float32)
 
     # Kernels along the line evaluated at the fast estimate: (I * g')(pos) = sum I(c) g'(pos - c).
     x = (delta[:, None] - j[None, :]).astype(np.float32)
     inv_s2 = np.float32(1.0 / sigma**2)
-    g0 = np.exp(np.float32(-0.5) * inv_s2 * x * x)
-    g0 /= g0.sum(axis=1, keepdims=True)
-    ku = np.empty((n, j.size, 3), np.float32)
-    ku[:, :, 0] = g0
-    ku[:, :, 1] = -x * inv_s2 * g0
-    ku[:, :, 2] = (x * x * inv_s2 - 1.0) * inv_s2 * g0
+    x2 = x * x
+    x2 *= inv_s2
+    g0 = np.exp(np.float32(-0.5) * x2)
+    g0 /= (g0 @ np.ones(P, np.float32))[:, None]
+    g1 = x * g0
+    g1 *= -inv_s2
+    x2 -= 1.0
+    x2 *= inv_s2
+    g2 = x2 * g0
     # Across the lines: the same sampled derivatives, all scaled by one factor (as along the
     # line), so that the Hessian's mixed and pure terms compare.
     kv0, kv1, kv2 = _gauss_kernels(-j.astype(np.float64), sigma)
-    scale = 1.0 / kv0.sum()
-    kv0, kv1, kv2 = (np.float32(scale) * k.astype(np.float32) for k in (kv0, kv1, kv2))
-    # Contract along u (last axis) with the three per-point kernels, then along v.
-    a = patch @ ku  # (n, P rows, 3)
-    a0, a1, a2 = a[:, :, 0], a[:, :, 1], a[:, :, 2]
-    ru = a1 @ kv0
-    ruu = a2 @ kv0
-    rv = a0 @ kv1
-    rvv = a0 @ kv2
-    ruv = a1 @ kv1
+    kv0, kv1, kv2 = (k * (1.0 / kv0.sum()) for k in (kv0, kv1, kv2))
+    centre = (j == 0).astype(np.float64)
+    # Seven responses (kernel along v, kernel along u): ru (kv0, g1), ruu (kv0, g2),
+    # rv (kv1, g0), ruv (kv1, g1), rvv (kv2, g0) and, on the centre row, r1 (g1), r2 (g2).
+    # Along v with the fixed kernels, all points by one matrix product; then along u with each
+    # point's own kernels.
+    kv = np.stack([kv0, kv0, kv1, kv1, kv2, centre, centre]).astype(np.float32)
+    resp = (kv @ patch).reshape(7, n, P)
+    resp *= np.stack([g1, g2, g0, g1, g0, g1, g2])
+    resp = (resp.reshape(7 * n, P) @ np.ones(P, np.float32)).reshape(7, n)
+    ru, ruu, rv, ruv, rvv, r1, r2 = resp
     # The local background's slope along the line biases the gradient of an asymmetric profile.
     ru = ru - peaks.slope
 
     # 1-D estimate along the centre row (lines at the image's top and bottom).
-    r1 = a1[:, R] - peaks.slope
-    r2 = a2[:, R]
+    r1 = r1 - peaks.slope
     with np.errstate(divide="ignore", invalid="ignore"):
         t1 = -r1 / r2
     # 2-D: cross direction = eigenvector of the most negative Hessian eigenvalue.
@@ -947,7 +951,8 @@ def _refine_precise(img: NDArray, peaks: _Peaks, sigma: float) -> tuple[NDArray,
     pos = np.where(use2d, pos + on_line, pos)
     pos = np.where(use1d, peaks.pos + t1, pos)
     # Saturated peaks keep the saturated-run centre: the Taylor model of a flat top is wrong.
-    pos = np.where(sat, peaks.pos, pos)
+    if sat.any():
+        pos = np.where(sat, peaks.pos, pos)
     return pos, voff
 
 
