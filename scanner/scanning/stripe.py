@@ -10,7 +10,8 @@ Two estimators share one interface:
 ``fast``
     The per-line maximum (``argmax`` over the whole image at once), a window gathered around it
     with fancy indexing, a linear local background (from flank pixels on both sides)
-    subtracted, and the centre of gravity of what remains. Peaks that run into the image border
+    subtracted, and the centre of gravity of what remains (all of it linear in the window's
+    pixels: one matrix product for every line of the frame). Peaks that run into the image border
     use the three-point Gaussian (log-parabola) estimator on a symmetric window, which a
     truncated window cannot bias.
 ``precise``
@@ -250,7 +251,10 @@ def orientation_from_image(image: NDArray) -> str:
 
 
 def _median(values: NDArray) -> float:
-    """Median, by histogram for integer images (several times faster than partitioning)."""
+    """Median: of 8/16-bit values the lower middle one, of floats as :func:`numpy.median`.
+
+    Small samples by partitioning, large 8-bit ones by histogram (several times faster).
+    """
     v = np.asarray(values).reshape(-1)
     if 0 < v.size <= 4096 and v.dtype in (np.uint8, np.uint16):  # lower median, as below
         k = (v.size - 1) // 2
@@ -684,7 +688,7 @@ def _primary_and_secondary(
     thr = bg_level + thr_contrast
     # Pixels above the level, the primary windows cleared: what remains is elsewhere on its line.
     if img.dtype == np.uint8:
-        _, mask = cv2.threshold(img, min(thr, 255.0), 1, cv2.THRESH_BINARY)
+        _, mask = cv2.threshold(img, min(thr, 254.0), 1, cv2.THRESH_BINARY)
     elif img.dtype == np.float32:
         mask = cv2.threshold(img, thr, 1, cv2.THRESH_BINARY)[1].astype(np.uint8)
     else:
