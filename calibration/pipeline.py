@@ -184,9 +184,9 @@ def _detect_all(
         for job in jobs:
             yield _detect_one(job)
         return
-    from concurrent.futures import ProcessPoolExecutor
+    from scanner.parallel import process_pool
 
-    with ProcessPoolExecutor(max_workers=workers) as pool:
+    with process_pool(workers) as pool:
         yield from pool.map(_detect_one, jobs, chunksize=2)
 
 

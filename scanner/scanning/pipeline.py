@@ -13,12 +13,11 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import multiprocessing
 import os
 import shutil
 import time
 from collections.abc import Sequence
-from concurrent.futures import Executor, ProcessPoolExecutor, ThreadPoolExecutor
+from concurrent.futures import Executor
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -28,6 +27,7 @@ from numpy.typing import NDArray
 
 from scanner.calibration_file import Calibration, read_calibration
 from scanner.fileio import InputError, atomic_output, load_gray_image
+from scanner.parallel import process_pool
 from scanner.scanning.stripe import (
     MODES,
     StripeOptions,
@@ -258,16 +258,8 @@ def _extract_chunk(job: _ChunkJob) -> tuple[int, int, int]:
 
 
 def _pool(workers: int) -> Executor:
-    """Worker processes (fork: no re-import of the caller's main module), else threads.
-
-    The workers only decode PNGs and run NumPy/OpenCV, which is safe after a fork; where fork
-    does not exist the threads still overlap because OpenCV and NumPy release the GIL.
-    """
-    if "fork" in multiprocessing.get_all_start_methods():
-        return ProcessPoolExecutor(
-            max_workers=workers, mp_context=multiprocessing.get_context("fork")
-        )
-    return ThreadPoolExecutor(max_workers=workers)
+    """Spawned worker processes (see :mod:`scanner.parallel` for why never fork)."""
+    return process_pool(workers)
 
 
 def _load_chunk(path: Path, key: str) -> dict[str, NDArray] | None:

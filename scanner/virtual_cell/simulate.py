@@ -11,11 +11,9 @@ from __future__ import annotations
 import csv
 import io
 import logging
-import multiprocessing
 import os
 import sys
 from collections.abc import Iterator
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -27,6 +25,7 @@ from tqdm import tqdm
 from scanner.calibration_file import LightPlane, write_calibration
 from scanner.conventions import invert_transform, make_transform
 from scanner.fileio import write_json_atomic, write_text_atomic
+from scanner.parallel import process_pool
 from scanner.session import Frame, write_session
 from scanner.targets import ConcentricCirclesTarget, TargetSpec
 from scanner.virtual_cell.capture import (
@@ -268,9 +267,7 @@ def _run_jobs(jobs: list[_Job], workers: int) -> Iterator[tuple]:
     if workers <= 1 or len(jobs) < 4:
         yield from map(_render, jobs)
         return
-    methods = multiprocessing.get_all_start_methods()
-    ctx = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
-    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+    with process_pool(workers) as pool:
         yield from pool.map(_render, jobs, chunksize=4)
 
 

@@ -1,0 +1,39 @@
+"""Worker processes for the stages that use both cores (detection, rendering, stripe extraction).
+
+Workers are started with ``spawn``, never ``fork``: OpenCV, OpenBLAS and Open3D keep thread
+pools whose locks a forked child inherits in whatever state the parent left them, and a child
+that then touches them (``cv2.setNumThreads``, a BLAS call) can wait forever. Spawned workers
+cost an interpreter start and the imports (about a second) once per pool, not per task.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor
+
+__all__ = ["process_pool"]
+
+
+def _limit_threads() -> None:
+    # Each worker is one of N parallel processes: nested thread pools only oversubscribe.
+    import os
+
+    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
+    try:
+        import cv2
+
+        cv2.setNumThreads(1)
+    except ImportError:  # pragma: no cover - cv2 is a dependency
+        pass
+
+
+def process_pool(workers: int) -> ProcessPoolExecutor:
+    """A process pool of ``workers`` spawned processes, each limited to one thread."""
+    if workers < 1:
+        raise ValueError(f"workers: expected >= 1, got {workers}")
+    return ProcessPoolExecutor(
+        max_workers=workers,
+        mp_context=multiprocessing.get_context("spawn"),
+        initializer=_limit_threads,
+    )
