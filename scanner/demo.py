@@ -144,7 +144,7 @@ def run_demo(
             read_session(sessions / "calibration"), method=method, progress=progress
         )
         write_calibration(calib_path, res.calibration)
-        write_calibration_report(res, out / "calibration.html")
+        write_calibration_report(res, out, "calibration.html")
         return res
 
     calib_result = stage("calibrate", calibrate)
