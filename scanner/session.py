@@ -367,11 +367,21 @@ def write_session(
     if any_off:
         header.append("laser_image_off")
 
+    root_abs = root.resolve()
+
     def rel(p: Path | None) -> str:
         if p is None:
             return ""
         p = Path(p)
-        return (p.relative_to(root) if p.is_absolute() else p).as_posix()
+        if not p.is_absolute():
+            # Relative to the session folder if it is there, else to the working directory.
+            p = root / p if (root / p).exists() or not p.exists() else p
+        try:
+            return p.resolve().relative_to(root_abs).as_posix()
+        except ValueError:
+            raise ValueError(
+                f"image {p}: expected a file inside the session folder {root}"
+            ) from None
 
     lines = [",".join(header)]
     for f in frames:

@@ -193,7 +193,8 @@ def aimed_view(
     ``ring_crossings_in_view`` also keeps the points E, F where the stripe meets the largest
     ring in view (the EF check).
     """
-    centre, radius = target_extent_mm(cell.target_spec())
+    spec = cell.target_spec()
+    centre, radius = target_extent_mm(spec)
     lo, hi = tilt_range_deg
     point_t = np.asarray(point_t, dtype=np.float64)
     for _ in range(_MAX_TRIES):
@@ -204,6 +205,11 @@ def aimed_view(
         q = _point_on_plane(cell, rng, 0.3)
         c_t = make_transform(rot, q - rot @ point_t)
         needed = [centre, point_t]
+        if isinstance(spec, ConcentricCirclesTarget):
+            # The operator keeps the orientation disc in view: without it the target cannot
+            # be labelled, and the paper's hand-eye needs labelled views of O, A and C.
+            mx, my = spec.orientation_marker.center_mm
+            needed.append(np.array([mx, my, 0.0]))
         if ring_crossings_in_view:
             n_t = rot.T @ cell.laser.normal
             along = np.array([n_t[1], -n_t[0], 0.0])

@@ -173,3 +173,14 @@ def test_extra_columns_are_ignored_and_sweep_column_is_read(tmp_path):
     )
     session = read_session(root)
     assert [f.sweep for f in session] == [0, 1, 0, 1]
+
+
+def test_session_written_from_a_relative_folder_reads_back(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    root = Path("out") / "calibration"
+    (root / "images").mkdir(parents=True)
+    cv2.imwrite(str(root / "images" / "t0.png"), np.zeros((48, 64), np.uint8))
+    frames = [Frame(0, root / "images" / "t0.png", None)]
+    write_session(root, "calibration", 64, 48, frames, None, TARGET)
+    assert "images/t0.png" in (root / "frames.csv").read_text()
+    assert read_session(root).frames[0].target_image == (tmp_path / root / "images" / "t0.png")
