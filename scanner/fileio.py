@@ -81,11 +81,27 @@ def _json_default(obj: Any) -> Any:
     raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
 
 
+def _without_nan(obj: Any) -> Any:
+    """``obj`` with NaN and infinite floats as ``None`` (JSON has no NaN; readers choke on it)."""
+    if isinstance(obj, float | np.floating):
+        return float(obj) if np.isfinite(obj) else None
+    if isinstance(obj, np.ndarray):
+        return _without_nan(obj.tolist())
+    if isinstance(obj, dict):
+        return {k: _without_nan(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_without_nan(v) for v in obj]
+    return obj
+
+
 def write_json_atomic(path: str | os.PathLike[str], obj: Any) -> None:
-    """Write ``obj`` as indented JSON (NumPy arrays and scalars allowed), atomically."""
-    write_text_atomic(
-        path, json.dumps(obj, indent=2, default=_json_default, allow_nan=False) + "\n"
-    )
+    """Write ``obj`` as indented JSON, atomically.
+
+    NumPy arrays and scalars are allowed; a NaN or infinite number (an undetermined figure)
+    is written as ``null``, since strict JSON readers refuse NaN.
+    """
+    text = json.dumps(_without_nan(obj), indent=2, default=_json_default, allow_nan=False)
+    write_text_atomic(path, text + "\n")
 
 
 def image_size(path: str | os.PathLike[str]) -> tuple[int, int]:

@@ -94,3 +94,10 @@ def test_written_files_get_ordinary_permissions(tmp_path):
     umask = os.umask(0)
     os.umask(umask)
     assert stat.S_IMODE((tmp_path / "c.json").stat().st_mode) == 0o666 & ~umask
+
+
+def test_undetermined_quality_figures_are_written_as_null(tmp_path):
+    calib = paper_calibration()
+    calib.quality = {"std": np.array([0.1, np.nan]), "rms": float("inf")}
+    write_calibration(tmp_path / "c.json", calib)
+    assert json.loads((tmp_path / "c.json").read_text())["quality"] == {"std": [0.1, None], "rms": None}
