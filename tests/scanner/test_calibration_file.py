@@ -100,4 +100,7 @@ def test_undetermined_quality_figures_are_written_as_null(tmp_path):
     calib = paper_calibration()
     calib.quality = {"std": np.array([0.1, np.nan]), "rms": float("inf")}
     write_calibration(tmp_path / "c.json", calib)
-    assert json.loads((tmp_path / "c.json").read_text())["quality"] == {"std": [0.1, None], "rms": None}
+    assert json.loads((tmp_path / "c.json").read_text())["quality"] == {
+        "std": [0.1, None],
+        "rms": None,
+    }
