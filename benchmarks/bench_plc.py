@@ -29,11 +29,10 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+from scanner.plc.config import PlcConfig
+from scanner.plc.jobs import JobContext, JobOutcome
 
-from scanner.plc.config import PlcConfig  # noqa: E402
-from scanner.plc.jobs import JobContext, JobOutcome  # noqa: E402
+REPO = Path(__file__).resolve().parents[1]
 
 READ_STATUS = struct.pack(">BHH", 3, 100, 15)
 

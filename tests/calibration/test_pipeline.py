@@ -162,10 +162,14 @@ def test_linelight_plane_agrees_with_the_authors():
     root = real_data() / "zhaocongyang_linelight"
     if not root.is_dir():
         pytest.skip(f"real data not found at {root} (set SCANNER_REAL_DATA)")
-    import sys
+    import importlib.util
 
-    sys.path.insert(0, str(REPO / "benchmarks"))
-    from bench_calibration import bench_linelight
+    spec = importlib.util.spec_from_file_location(
+        "bench_calibration", REPO / "benchmarks" / "bench_calibration.py"
+    )
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    bench_linelight = bench.bench_linelight
 
     fig = bench_linelight(root.parent)
     assert fig["normal_deg"] < 0.5
