@@ -367,7 +367,8 @@ def write_session(
     if any_off:
         header.append("laser_image_off")
 
-    root_abs = root.resolve()
+    # abspath, not resolve: an images folder may be a symlink to shared images.
+    root_abs = Path(os.path.abspath(root))
 
     def rel(p: Path | None) -> str:
         if p is None:
@@ -377,7 +378,7 @@ def write_session(
             # Relative to the session folder if it is there, else to the working directory.
             p = root / p if (root / p).exists() or not p.exists() else p
         try:
-            return p.resolve().relative_to(root_abs).as_posix()
+            return Path(os.path.abspath(p)).relative_to(root_abs).as_posix()
         except ValueError:
             raise ValueError(
                 f"image {p}: expected a file inside the session folder {root}"
