@@ -286,7 +286,8 @@ def calibrate_session(
         )
     )
     for f in with_target:
-        obs = given.get(f.id) or found_now[f.id]
+        # A given observation may be a falsy "not found": never fall through on it.
+        obs = given[f.id] if f.id in given else found_now[f.id]
         observations[f.id] = obs
         if not obs:
             rejected.append({"frame_id": f.id, "stage": "detect", "reason": obs.reason})
