@@ -54,9 +54,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from metrology.fit import Fit, PlaneFit, SphereFit, fit_plane, fit_sphere
-from metrology.measure import load_cloud
+from metrology.measure import cloud_points
 from metrology.plan import Region, load_dataclass
-from scanner.conventions import check_points
 from scanner.reporting import STATUS_ERROR, STATUS_FAIL, STATUS_PASS, ToleranceRow
 
 __all__ = [
@@ -312,15 +311,7 @@ def run_acceptance(
     if not isinstance(spec, AcceptanceSpec):
         spec_path = str(spec)
         spec = load_acceptance_spec(spec)
-    cloud_path = None
-    prov: dict[str, Any] = {}
-    if isinstance(cloud, str | os.PathLike):
-        cloud_path = str(cloud)
-        points, prov = load_cloud(cloud)
-    else:
-        points = check_points(cloud, min_count=1, name="cloud")
-    if provenance:
-        prov = dict(provenance)
+    points, prov, cloud_path = cloud_points(cloud, provenance)
     mpe = spec.mpe
     deviations = np.full(len(points), np.nan)
     fits: dict[str, Fit] = {}

@@ -454,6 +454,25 @@ def _plan_needs_min_zone(plan: Plan) -> set[str]:
     return {m.features[0] for m in plan.measurements if m.method == "min_zone" and m.features}
 
 
+def cloud_points(
+    cloud: str | os.PathLike[str] | ArrayLike, provenance: dict[str, Any] | None = None
+) -> tuple[NDArray, dict[str, Any], str | None]:
+    """``(points, provenance, path)`` of a cloud given as a file or as ``(N, 3)`` points.
+
+    ``provenance`` (where the cloud came from), when given, overrides the file's own record.
+    """
+    cloud_path = None
+    prov: dict[str, Any] = {}
+    if isinstance(cloud, str | os.PathLike):
+        cloud_path = str(cloud)
+        points, prov = load_cloud(cloud)
+    else:
+        points = check_points(cloud, min_count=1, name="cloud")
+    if provenance:
+        prov = dict(provenance)
+    return points, prov, cloud_path
+
+
 def measure_cloud(
     cloud: str | os.PathLike[str] | ArrayLike,
     plan: Plan | str | os.PathLike[str],
@@ -487,15 +506,7 @@ def measure_cloud(
     if not isinstance(plan, Plan):
         plan_path = str(plan)
         plan = load_plan(plan)
-    cloud_path = None
-    prov: dict[str, Any] = {}
-    if isinstance(cloud, str | os.PathLike):
-        cloud_path = str(cloud)
-        points, prov = load_cloud(cloud)
-    else:
-        points = check_points(cloud, min_count=1, name="cloud")
-    if provenance:
-        prov = dict(provenance)
+    points, prov, cloud_path = cloud_points(cloud, provenance)
     min_zone_features = _plan_needs_min_zone(plan)
     deviations = np.full(len(points), np.nan)
     features: list[FeatureResult] = []
