@@ -67,6 +67,17 @@ class ScanOptions:
         Voxel downsampling of the final cloud.
     outlier_neighbors, outlier_std_ratio
         Statistical outlier removal (0 neighbours: off).
+    max_incidence_deg : float or None
+        Drop points whose surface (normal from the cloud) is seen, or lit when
+        ``laser_origin_mm`` is given, more obliquely than this. Grazing stripes are wide, dim
+        and skewed and their centres biased; on a sphere those points sit at the rim of the
+        cap, where they bias the fitted radius most. ``None``: keep every point.
+    laser_origin_mm : (float, float, float) or None
+        Where the laser fan is emitted, camera frame, mm (the sensor's drawing); enables the
+        illumination angle. The cloud carries ``cos_view`` and ``cos_laser`` whenever
+        ``max_incidence_deg`` is set.
+    incidence_radius_mm : float
+        Neighbourhood radius of the normals behind the incidence angles.
     normals_radius_mm : float or None
         Estimate normals with this search radius.
     icp : bool
@@ -86,6 +97,9 @@ class ScanOptions:
     voxel_mm: float | None = None
     outlier_neighbors: int = 0
     outlier_std_ratio: float = 2.0
+    max_incidence_deg: float | None = None
+    laser_origin_mm: tuple[float, float, float] | None = None
+    incidence_radius_mm: float = 1.5
     normals_radius_mm: float | None = None
     icp: bool = False
     icp_max_distance_mm: float = 2.0
@@ -103,6 +117,14 @@ class ScanOptions:
             )
         if self.voxel_mm is not None and self.voxel_mm < 0:
             raise ValueError(f"voxel_mm: expected >= 0, got {self.voxel_mm}")
+        if self.max_incidence_deg is not None and not 0 < self.max_incidence_deg <= 90:
+            raise ValueError(
+                f"max_incidence_deg: expected 0 < angle <= 90, got {self.max_incidence_deg}"
+            )
+        if self.laser_origin_mm is not None and len(self.laser_origin_mm) != 3:
+            raise ValueError(f"laser_origin_mm: expected (x, y, z), got {self.laser_origin_mm!r}")
+        if self.incidence_radius_mm <= 0:
+            raise ValueError(f"incidence_radius_mm: expected > 0, got {self.incidence_radius_mm}")
         if self.workers < 1 or self.chunk_frames < 1:
             raise ValueError(
                 f"workers, chunk_frames: expected >= 1, got {self.workers}, {self.chunk_frames}"
@@ -403,6 +425,38 @@ def scan_profiles(
 # the job
 
 
+def _limit_incidence(
+    points: NDArray,
+    attributes: dict[str, NDArray],
+    frame_pos: NDArray,
+    base_from_cam: NDArray,
+    options: ScanOptions,
+) -> tuple[NDArray, dict[str, NDArray]]:
+    """Add ``cos_view``, ``cos_laser`` and drop the points seen or lit beyond the limit.
+
+    Points without a normal (isolated) are kept: nothing says they are grazing.
+    """
+    from scanner.scanning.stitch import incidence_cosines
+
+    cos_view, cos_laser = incidence_cosines(
+        points, frame_pos, base_from_cam, options.laser_origin_mm, options.incidence_radius_mm
+    )
+    limit = np.cos(np.radians(float(options.max_incidence_deg)))  # type: ignore[arg-type]
+    grazing = (cos_view < limit) | (cos_laser < limit)  # NaN compares False: kept
+    log.info(
+        "incidence limit %.0f deg: %d of %d points dropped (%s)",
+        options.max_incidence_deg,
+        np.count_nonzero(grazing),
+        len(points),
+        "view and laser" if options.laser_origin_mm is not None else "view only",
+    )
+    keep = ~grazing
+    attributes = {k: v[keep] for k, v in attributes.items()}
+    attributes["cos_view"] = cos_view[keep].astype(np.float32)
+    attributes["cos_laser"] = cos_laser[keep].astype(np.float32)
+    return points[keep], attributes
+
+
 def scan_session(
     session_or_sessions: Any,
     calibration: Calibration | str | os.PathLike[str],
@@ -517,16 +571,18 @@ def scan_session(
                 warnings.append(f"sweep {c.sweep}: not refined ({c.note})")
 
     frame_ids = np.array([f.id for f in frames], dtype=np.int32)
-    cloud = build_cloud(
-        points,
-        {
-            "intensity": profiles["intensity"][ok].astype(np.float32),
-            "width_px": profiles["width_px"][ok].astype(np.float32),
-            "flags": profiles["flags"][ok].astype(np.uint8),
-            "frame_id": frame_ids[frame_pos],
-            "sweep_id": sweep_arr,
-        },
-    )
+    attributes = {
+        "intensity": profiles["intensity"][ok].astype(np.float32),
+        "width_px": profiles["width_px"][ok].astype(np.float32),
+        "flags": profiles["flags"][ok].astype(np.uint8),
+        "frame_id": frame_ids[frame_pos],
+        "sweep_id": sweep_arr,
+    }
+    if options.max_incidence_deg is not None:
+        points, attributes = _limit_incidence(
+            points, attributes, frame_pos, poses @ calibration.flange_from_cam, options
+        )
+    cloud = build_cloud(points, attributes)
     cloud = filter_cloud(
         cloud,
         voxel_mm=options.voxel_mm,

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
 from scanner.conventions import angle_between_rotations_deg
 
@@ -22,6 +23,7 @@ __all__ = [
     "SweepCorrection",
     "build_cloud",
     "filter_cloud",
+    "incidence_cosines",
     "refine_sweeps",
 ]
 
@@ -87,6 +89,74 @@ def filter_cloud(
     if normals_radius_mm is not None and normals_radius_mm > 0 and len(out.point.positions) >= 3:
         out.estimate_normals(max_nn=30, radius=float(normals_radius_mm))
     return out
+
+
+def incidence_cosines(
+    points_base: NDArray,
+    frame_index: NDArray,
+    base_from_cam: NDArray,
+    laser_origin_cam: NDArray | None = None,
+    normals_radius_mm: float = 1.5,
+) -> tuple[NDArray, NDArray]:
+    """Cosines of the viewing and illumination angles of each point's surface.
+
+    The surface normal comes from the cloud itself (principal axes of the neighbours within
+    ``normals_radius_mm``: several profile spacings, since one profile alone is a line); the
+    viewing direction from the frame's camera centre, the illumination direction from the laser's
+    emitter. Near 0 means grazing: there the stripe is wide, dim and skewed across its width,
+    and its centre is biased (on a sphere, points near the silhouette or the terminator bias
+    the fitted radius).
+
+    Parameters
+    ----------
+    points_base : ndarray, shape (N, 3)
+        Base frame, mm.
+    frame_index : ndarray, shape (N,), int
+        Index of each point's frame into ``base_from_cam``.
+    base_from_cam : ndarray, shape (F, 4, 4)
+        Camera pose of each frame.
+    laser_origin_cam : ndarray, shape (3,), optional
+        Where the laser fan is emitted, camera frame, mm (from the sensor's drawing; an angle
+        limit needs it to a few mm only). ``None``: the laser cosines are NaN.
+    normals_radius_mm : float
+
+    Returns
+    -------
+    cos_view, cos_laser : ndarray, shape (N,)
+        In [0, 1]; NaN where a point has too few neighbours for a normal.
+    """
+    pts = np.ascontiguousarray(points_base, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"points_base: expected shape (N, 3), got {pts.shape}")
+    idx = np.asarray(frame_index, dtype=np.int64)
+    if idx.shape != (len(pts),):
+        raise ValueError(f"frame_index: expected shape ({len(pts)},), got {idx.shape}")
+    poses = np.asarray(base_from_cam, dtype=np.float64).reshape(-1, 4, 4)
+    if normals_radius_mm <= 0:
+        raise ValueError(f"normals_radius_mm: expected > 0, got {normals_radius_mm}")
+    nan = np.full(len(pts), np.nan)
+    if len(pts) < 3:
+        return nan, nan.copy()
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=normals_radius_mm, max_nn=30))
+    normals = np.asarray(pc.normals)
+    # Open3D leaves a default normal where a point has fewer than three neighbours.
+    counts = cKDTree(pts).query_ball_point(pts, normals_radius_mm, return_length=True)
+    few = np.asarray(counts) < 3
+
+    def cosines(origins: NDArray) -> NDArray:
+        to_origin = origins - pts
+        to_origin /= np.linalg.norm(to_origin, axis=1, keepdims=True)
+        c = np.abs(np.einsum("ij,ij->i", normals, to_origin))
+        c[few] = np.nan
+        return c
+
+    cos_view = cosines(poses[idx, :3, 3])
+    if laser_origin_cam is None:
+        return cos_view, nan
+    o = np.asarray(laser_origin_cam, dtype=np.float64).reshape(3)
+    laser_base = np.einsum("kij,j->ki", poses[:, :3, :3], o) + poses[:, :3, 3]
+    return cos_view, cosines(laser_base[idx])
 
 
 def _legacy(points: NDArray, voxel_mm: float, normals_radius_mm: float) -> o3d.geometry.PointCloud:

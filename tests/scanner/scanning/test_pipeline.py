@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from scanner.calibration_file import write_calibration
+from scanner.calibration_file import read_calibration, write_calibration
 from scanner.fileio import InputError
 from scanner.scanning.cloud_io import read_cloud, read_ply_metadata
 from scanner.scanning.pipeline import ScanOptions, scan_session
@@ -189,6 +189,33 @@ def test_filters_voxel_outliers_normals(dense_sweep, tmp_path):
     assert 0 < r.n_points < full.n_points
     normals = r.cloud.point.normals.numpy()
     assert np.median(np.abs(normals[:, 2])) > 0.99  # table and block top face up
+
+
+def test_incidence_limit_keeps_face_on_surfaces_and_reports_the_view_angle(dense_sweep):
+    session, cal_path, _ = dense_sweep
+    full = scan_session(session, cal_path, ScanOptions(), None, progress=False)
+    r = scan_session(
+        session,
+        cal_path,
+        ScanOptions(max_incidence_deg=60.0, incidence_radius_mm=3.0),
+        None,
+        progress=False,
+    )
+    assert r.n_points > 0.97 * full.n_points  # table and block top face the camera
+    pts = r.cloud.point.positions.numpy()
+    cos_view = r.cloud.point.cos_view.numpy().ravel()
+    assert np.all(np.isnan(r.cloud.point.cos_laser.numpy()))  # no laser origin given
+    # The true cosine: both surfaces face up (+z), seen from each frame's camera centre.
+    cal = read_calibration(cal_path)
+    centres = {
+        f.id: (f.base_from_flange @ cal.flange_from_cam)[:3, 3]
+        for f in read_session(session).frames
+    }
+    to_cam = np.stack([centres[i] for i in r.cloud.point.frame_id.numpy().ravel()]) - pts
+    true_cos = np.abs(to_cam[:, 2]) / np.linalg.norm(to_cam, axis=1)
+    ok = np.isfinite(cos_view)
+    assert np.count_nonzero(ok) > 0.95 * len(ok)
+    assert np.median(np.abs(cos_view[ok] - true_cos[ok])) < 0.01
 
 
 def test_bad_input_is_refused_before_any_work(sweep, tmp_path):
