@@ -103,6 +103,52 @@ def speed_table() -> None:
     print("column scan lines include the frame's transposition (cv2.transpose)")
 
 
+def step_table() -> None:
+    """Where the fast mode's time goes: each step of one call, timed alone on the same frame."""
+    from scanner.scanning import stripe
+
+    cv2.setNumThreads(1)
+    img, _ = _frame(0)
+    H, W = img.shape
+    noise = estimate_noise(img)
+    hw = auto_half_window(img, noise)
+    fixed = StripeOptions(half_window_px=hw, noise=noise)
+    # The candidate level as _primary_and_secondary sets it.
+    grid = img[:: max(1, H // 32), :: max(1, W // 32)]
+    level = stripe._median(grid) + max(fixed.k_noise * noise, 0.03 * 255.0)
+    _, mask = cv2.threshold(img, level, 1, cv2.THRESH_BINARY)
+    cols = img.argmax(axis=1)
+    lines = np.arange(H)
+    steps = [
+        ("frame.max()", lambda: img.max()),
+        ("candidate mask (cv2.threshold)", lambda: cv2.threshold(img, level, 1, cv2.THRESH_BINARY)),
+        ("argmax of every line", lambda: img.argmax(axis=1)),
+        ("background level (sparse median)", lambda: stripe._median(grid)),
+        (
+            "windows: gather, product, widths",
+            lambda: stripe._measure_many(img, lines, cols, hw, 255.0, clear=mask.copy()),
+        ),
+        ("  of which mask.copy() (bench only)", lambda: mask.copy()),
+        ("lines with further candidates", lambda: cv2.reduce(mask, 1, cv2.REDUCE_MAX)),
+        ("extract_stripe fast", lambda: extract_stripe(img, "fast", "rows", options=fixed)),
+    ]
+    # Interleaved rounds, best of each: the steps see the same load.
+    best = [float("inf")] * len(steps)
+    for _ in range(7):
+        for i, (_, fn) in enumerate(steps):
+            best[i] = min(best[i], _best_time(fn, repeat=1, number=40))
+    t_max, t_all = best[0], best[-1]
+    print(f"\nFast mode, window and noise fixed, by step (each timed alone; hw = {hw} px)")
+    print(f"{'step':38s} {'time':>9s} {'x frame.max()':>14s}")
+    total = 0.0
+    for (name, _), t in zip(steps[1:-1], best[1:-1], strict=True):
+        total += -t if name.startswith("  ") else t
+        print(f"{name:38s} {t * 1e6:6.0f} us {t / t_max:14.1f}")
+    rest = t_all - total
+    print(f"{'the rest (small NumPy calls, output)':38s} {rest * 1e6:6.0f} us {rest / t_max:14.1f}")
+    print(f"{'extract_stripe fast':38s} {t_all * 1e6:6.0f} us {t_all / t_max:14.1f}")
+
+
 def accuracy_table(seeds: int = 8) -> None:
     print("\nAccuracy on analytic frames (1024x768, sigma 1.5 px, amplitude 120-200 grey levels)")
     print(
@@ -200,6 +246,7 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=40, help="virtual-cell frames to compare")
     args = parser.parse_args()
     speed_table()
+    step_table()
     accuracy_table()
     if args.cell is not None:
         cell_table(args.cell, args.frames)

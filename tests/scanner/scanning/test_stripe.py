@@ -357,3 +357,33 @@ def test_odd_sizes_read_only_and_float_frames_give_the_same_profile():
         err = _errors(p, truth[0][0], truth[0][1] - 134)
         assert len(p) == 9
         assert np.all(np.abs(err) < 0.2)
+
+
+# --------------------------------------------------------------------------------------------
+# The noise and window estimates of the default call, against their plain NumPy definitions.
+
+
+def test_median_of_eight_bit_values_is_the_lower_middle_one():
+    from scanner.scanning.stripe import _median
+
+    rng = np.random.default_rng(15)
+    big = rng.integers(0, 12, size=(40, 1023), dtype=np.uint8)  # the histogram path
+    for values in (big, big.reshape(-1), big[::3, ::2], big[:3, :5], big.reshape(-1)[:4096]):
+        flat = np.sort(values.reshape(-1))
+        assert _median(values) == float(flat[(flat.size - 1) // 2])
+
+
+@pytest.mark.parametrize(("sigma", "last_line"), [(1.0, 240), (1.6, 224), (2.5, 240)])
+def test_auto_half_window_is_the_median_width_as_numpy_takes_it(sigma, last_line):
+    from scanner.scanning.stripe import _FWHM_PER_SIGMA, _measure_many, auto_half_window
+
+    # 15 or 14 sampled lines on the stripe: an odd and an even count of widths.
+    seg = StripeSegment((0, last_line), (140.3, 0.21), amplitude=170.0, sigma_px=sigma)
+    img, _ = render_stripes(SHAPE, [seg], noise=1.0, seed=16)
+    noise = 1.0
+    lines = np.arange(0, SHAPE[0], 16)
+    m = _measure_many(img, lines, img[::16].argmax(axis=1), 10, np.inf, typical=np.inf)
+    widths = m.width[m.contrast > 10.0 * noise]
+    assert widths.size in (14, 15)
+    want = int(np.clip(np.rint(2.7 * float(np.median(widths)) / _FWHM_PER_SIGMA), 3, 20))
+    assert auto_half_window(img, noise) == want
