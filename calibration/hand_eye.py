@@ -11,7 +11,7 @@ Methods
     through :mod:`calibration.opencv_adapter`), then one joint nonlinear adjustment of
     ``flange_from_cam`` and ``base_from_target`` (robust loss). Its cost (``cost``):
 
-    ``"robot"`` (default)
+    ``"robot"``
         Image residuals of every feature, and for every view the unknown flange motion by
         which the robot missed its reported pose, held to the robot's repeatability as a
         prior; the image noise and the rotation and translation repeatability are variance
@@ -21,7 +21,7 @@ Methods
         rotation of X against a translation (the target's image barely tells them apart) and
         lets the robot's error leak into both: 0.045 deg and 0.24 mm against 0.002 deg and
         0.01 mm on the modern virtual cell.
-    ``"image"``
+    ``"image"`` (default)
         The image residuals of every target feature in every posed view; the intrinsics can
         be refined too (``refine_intrinsics``).
 ``tsai``, ``park``, ``horaud``, ``andreff``, ``daniilidis``, ``shah``, ``li``
@@ -605,7 +605,7 @@ def calibrate_hand_eye(
     camera: CameraModel,
     method: str = "default",
     refine_intrinsics: bool = False,
-    cost: str = "robot",
+    cost: str = "image",
 ) -> HandEyeResult:
     """Solve ``flange_from_cam`` and ``base_from_target`` from posed views of the fixed target.
 
@@ -621,9 +621,13 @@ def calibrate_hand_eye(
     refine_intrinsics : bool
         Let the adjustment refine fx, fy, cx, cy and five distortion terms too (needs
         ``cost="image"``; given alone it selects it).
-    cost : {"robot", "image"}
-        What the default adjustment minimises (see the module docstring): the chain
-        misclosures weighted by the robot's repeatability, or the image residuals.
+    cost : {"image", "robot", "auto"}
+        What the default adjustment minimises (see the module docstring). ``"image"`` stays
+        the default: ``"robot"`` is far better on the virtual cells (plain repeatability) but
+        worse on the real kuka_1 robot (2.90 px chain RMS against 2.38 px), whose errors are
+        not plain repeatability. ``"auto"`` runs both and keeps the one whose views agree
+        best on the target's position in the base frame (it picks the image cost on both,
+        so it does not settle the question yet).
 
     Returns
     -------
@@ -634,8 +638,8 @@ def calibrate_hand_eye(
         raise ValueError(
             f"method: expected 'default' or one of {', '.join(CLOSED_FORM_METHODS)}, got {method!r}"
         )
-    if cost not in ("robot", "image"):
-        raise ValueError(f"cost: expected 'robot' or 'image', got {cost!r}")
+    if cost not in ("auto", "robot", "image"):
+        raise ValueError(f"cost: expected 'auto', 'robot' or 'image', got {cost!r}")
     if refine_intrinsics:
         cost = "image"  # only image residuals can tell the intrinsics anything
     views, rejected = _per_view_poses(views, camera)
@@ -678,7 +682,21 @@ def calibrate_hand_eye(
     std_t = np.full(3, np.nan)
     cam = camera
     repeatability: dict[str, float] = {}
-    if method == "default" and cost == "robot":
+    if method == "default" and cost == "auto":
+        xr, zr, std, repeatability = _adjust_robot_space(views, camera, x, z)
+        xi, zi, _, std_i, res_i = _adjust(views, camera, x, z, False)
+        spread_r = np.linalg.norm(
+            _summaries(views, _chain_residuals(views, camera, xr, zr), xr, zr, camera)[1]
+        )
+        spread_i = np.linalg.norm(_summaries(views, res_i, xi, zi, camera)[1])
+        if spread_r <= spread_i:
+            x, z, res = xr, zr, _chain_residuals(views, camera, xr, zr)
+            label = f"joint adjustment, robot errors (start: {best}; target scatter {spread_r:.3f} mm vs image cost {spread_i:.3f} mm)"
+        else:
+            x, z, res, std, repeatability = xi, zi, res_i, std_i, {}
+            label = f"joint adjustment, image residuals (start: {best}; target scatter {spread_i:.3f} mm vs robot cost {spread_r:.3f} mm)"
+        std_r, std_t = std[:3], std[3:]
+    elif method == "default" and cost == "robot":
         x, z, std, repeatability = _adjust_robot_space(views, camera, x, z)
         res = _chain_residuals(views, camera, x, z)
         std_r, std_t = std[:3], std[3:]

@@ -49,7 +49,7 @@ def test_default_recovers_truth_and_beats_every_closed_form():
         closed = calibrate_hand_eye(views, cam, method)
         assert closed.rms_px >= res.rms_px
     # The robot-space cost on the same data lands on the same solution within its noise.
-    robot = calibrate_hand_eye(views, cam)
+    robot = calibrate_hand_eye(views, cam, cost="robot")
     assert all(v < 0.02 for v in (_errors(robot.flange_from_cam)[0],))
     assert _errors(robot.flange_from_cam)[1] < 0.15
 
@@ -77,14 +77,14 @@ def test_robot_cost_beats_image_cost_when_the_robot_repeatability_dominates():
         views, cam = S.posed_views(20, rng, noise_px=0.03)
         views = _with_robot_error(views, rng, 0.005, 0.02)
         for key, kwargs in (
-            ("robot", {}),
+            ("robot", {"cost": "robot"}),
             ("image", {"cost": "image"}),
             ("tsai", {"method": "tsai"}),
         ):
             res = calibrate_hand_eye(views, cam, **kwargs)
             assert res, res.reason
             errors[key].append(_errors(res.flange_from_cam))
-        repeat.append(calibrate_hand_eye(views, cam).robot_repeatability)
+        repeat.append(calibrate_hand_eye(views, cam, cost="robot").robot_repeatability)
     rms = {k: np.sqrt(np.mean(np.square(v), axis=0)) for k, v in errors.items()}
     # Rotation (deg) and translation (mm): the robot-space adjustment is the best of the three.
     assert rms["robot"][0] <= min(rms["image"][0], rms["tsai"][0])
