@@ -11,8 +11,8 @@ detects, calibrates and prints a table method x figure against the cell's true c
 
 Real data (``../shared/data/real``, or ``SCANNER_REAL_DATA``) is calibrated too when present.
 
-Two view sets: ``whole`` (both targets wholly in view at the same poses) and ``corners`` (the
-cell's own hand-held views, where the concentric target may run out of the image so that its
+Two view sets: ``whole`` (both targets wholly in view at the same poses) and ``corners`` (near
+and far, the concentric target anywhere in the image and allowed to run out of it, so that its
 edges reach the corners; the chessboard is then often cut and not found).
 
 Run: ``python benchmarks/bench_intrinsics.py [--cell modern] [--views 20] [--no-real]
@@ -96,22 +96,49 @@ def spread_poses(cell, n: int, rng: np.random.Generator, max_tilt_deg: float = 4
     return poses
 
 
-def corner_poses(cell, n: int, rng: np.random.Generator) -> list:
-    """``cam_from_target`` of n views as the cell's calibration session takes them.
+def corner_poses(cell, n: int, rng: np.random.Generator, max_tilt_deg: float = 45.0) -> list:
+    """``cam_from_target`` of n views that let the concentric target reach the corners.
 
-    :func:`scanner.virtual_cell.poses.hand_held_view`: distances 0.6-1.15 working distances,
-    the target anywhere in the image and, in about half of the views, partly out of it, so
-    that ring edges reach the corners. The chessboard at the same pose is often cut by the
-    border there, and OpenCV's detector then finds nothing: the anchor uses the views it finds.
+    The target centre on the ray of a random pixel (10-90 % of the image), at 0.6-1.1
+    working distances, tilted up to ``max_tilt_deg``, any in-plane rotation; the centre O and
+    the orientation disc in view with a 40 px margin and at least half of the largest ring
+    inside the image. The chessboard at the same pose is often cut by the border there, and
+    OpenCV's detector then finds nothing: the anchor uses the views it finds.
     """
-    from scanner.virtual_cell.poses import hand_held_view
+    from scanner.conventions import transform_points
 
-    return [hand_held_view(cell, rng) for _ in range(n)]
+    cam = cell.camera_model()
+    w, h = cam.width, cam.height
+    wd = cell.capture.working_distance_mm
+    spec = cell.target_spec()
+    ring = np.linspace(0, 2 * np.pi, 72, endpoint=False)
+    ring_t = spec.radius_mm * np.column_stack([np.cos(ring), np.sin(ring), 0 * ring])
+    needed_t = np.array([[0.0, 0.0, 0.0], [*spec.orientation_marker.center_mm, 0.0]])
+    face = Rotation.from_euler("x", 180, degrees=True)
+    poses: list = []
+    while len(poses) < n:
+        u, v = rng.uniform(0.1 * w, 0.9 * w), rng.uniform(0.1 * h, 0.9 * h)
+        ray = np.linalg.solve(cam.K, [u, v, 1.0])
+        ray /= np.linalg.norm(ray)
+        align, _ = Rotation.align_vectors([[0, 0, 1.0]], [ray])
+        tilt = np.radians(max_tilt_deg) * np.sqrt(rng.uniform(0.05, 1.0))
+        az = rng.uniform(0, 2 * np.pi)
+        tilt_rot = Rotation.from_rotvec(tilt * np.array([np.cos(az), np.sin(az), 0.0]))
+        roll = Rotation.from_euler("z", rng.uniform(0, 360), degrees=True)
+        pose = make_transform(
+            align.inv() * tilt_rot * face * roll, ray * wd * rng.uniform(0.6, 1.1)
+        )
+        if not np.all(cam.in_image(cam.project(transform_points(pose, needed_t)), 40.0)):
+            continue
+        if np.mean(cam.in_image(cam.project(transform_points(pose, ring_t)))) < 0.5:
+            continue
+        poses.append(pose)
+    return poses
 
 
 VIEW_SETS = {
     "whole": "both targets wholly in view at every pose (the same views for both)",
-    "corners": "the cell's hand-held views: the concentric target may leave the image",
+    "corners": "near and far, anywhere in the image, the concentric target may leave it",
 }
 
 
