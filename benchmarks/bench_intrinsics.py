@@ -48,6 +48,35 @@ log = logging.getLogger("bench_intrinsics")
 CHESSBOARD = ChessboardTarget(inner_corners=(11, 8), square_mm=14.0)
 
 
+def _random_view(
+    cam: CameraModel,
+    working_distance_mm: float,
+    rng: np.random.Generator,
+    image_span: tuple[float, float],
+    distance_span: tuple[float, float],
+    max_tilt_deg: float,
+) -> NDArray:
+    """``cam_from_target`` with the target centre on the ray of a random pixel.
+
+    The pixel lies in ``image_span`` (fractions of width and height), the distance in
+    ``distance_span`` (times the working distance); tilted up to ``max_tilt_deg`` about a
+    random in-plane axis, any in-plane rotation, target z towards the camera.
+    """
+    lo, hi = image_span
+    u = rng.uniform(lo * cam.width, hi * cam.width)
+    v = rng.uniform(lo * cam.height, hi * cam.height)
+    ray = np.linalg.solve(cam.K, [u, v, 1.0])
+    ray /= np.linalg.norm(ray)
+    align, _ = Rotation.align_vectors([[0, 0, 1.0]], [ray])
+    tilt = np.radians(max_tilt_deg) * np.sqrt(rng.uniform(0.05, 1.0))
+    az = rng.uniform(0, 2 * np.pi)
+    tilt_rot = Rotation.from_rotvec(tilt * np.array([np.cos(az), np.sin(az), 0.0]))
+    roll = Rotation.from_euler("z", rng.uniform(0, 360), degrees=True)
+    face = Rotation.from_euler("x", 180, degrees=True)
+    rot = align.inv() * tilt_rot * face * roll
+    return make_transform(rot, ray * working_distance_mm * rng.uniform(*distance_span))
+
+
 def spread_poses(cell, n: int, rng: np.random.Generator, max_tilt_deg: float = 45.0) -> list:
     """``cam_from_target`` of n hand-held views spread over the image.
 
@@ -60,7 +89,6 @@ def spread_poses(cell, n: int, rng: np.random.Generator, max_tilt_deg: float = 4
     from scanner.conventions import transform_points
 
     cam = cell.camera_model()
-    w, h = cam.width, cam.height
     wd = cell.capture.working_distance_mm
     spec = cell.target_spec()
     cols, rows = CHESSBOARD.inner_corners
@@ -77,19 +105,9 @@ def spread_poses(cell, n: int, rng: np.random.Generator, max_tilt_deg: float = 4
     th = np.linspace(0, 2 * np.pi, 24, endpoint=False)
     outline += [np.array([r_out * np.cos(a), r_out * np.sin(a), 0.0]) for a in th]
     outline_t = np.asarray(outline)
-    face = Rotation.from_euler("x", 180, degrees=True)  # target z towards the camera
     poses: list = []
     while len(poses) < n:
-        u, v = rng.uniform(0, w), rng.uniform(0, h)
-        ray = np.linalg.solve(cam.K, [u, v, 1.0])
-        ray /= np.linalg.norm(ray)
-        align, _ = Rotation.align_vectors([[0, 0, 1.0]], [ray])
-        tilt = np.radians(max_tilt_deg) * np.sqrt(rng.uniform(0.05, 1.0))
-        az = rng.uniform(0, 2 * np.pi)
-        tilt_rot = Rotation.from_rotvec(tilt * np.array([np.cos(az), np.sin(az), 0.0]))
-        roll = Rotation.from_euler("z", rng.uniform(0, 360), degrees=True)
-        rot = align.inv() * tilt_rot * face * roll
-        pose = make_transform(rot, ray * wd * rng.uniform(0.9, 1.1))
+        pose = _random_view(cam, wd, rng, (0.0, 1.0), (0.9, 1.1), max_tilt_deg)
         pc = transform_points(pose, outline_t)
         if np.all(pc[:, 2] > 0) and np.all(cam.in_image(cam.project(pc), 15.0)):
             poses.append(pose)
@@ -108,26 +126,14 @@ def corner_poses(cell, n: int, rng: np.random.Generator, max_tilt_deg: float = 4
     from scanner.conventions import transform_points
 
     cam = cell.camera_model()
-    w, h = cam.width, cam.height
     wd = cell.capture.working_distance_mm
     spec = cell.target_spec()
     ring = np.linspace(0, 2 * np.pi, 72, endpoint=False)
     ring_t = spec.radius_mm * np.column_stack([np.cos(ring), np.sin(ring), 0 * ring])
     needed_t = np.array([[0.0, 0.0, 0.0], [*spec.orientation_marker.center_mm, 0.0]])
-    face = Rotation.from_euler("x", 180, degrees=True)
     poses: list = []
     while len(poses) < n:
-        u, v = rng.uniform(0.1 * w, 0.9 * w), rng.uniform(0.1 * h, 0.9 * h)
-        ray = np.linalg.solve(cam.K, [u, v, 1.0])
-        ray /= np.linalg.norm(ray)
-        align, _ = Rotation.align_vectors([[0, 0, 1.0]], [ray])
-        tilt = np.radians(max_tilt_deg) * np.sqrt(rng.uniform(0.05, 1.0))
-        az = rng.uniform(0, 2 * np.pi)
-        tilt_rot = Rotation.from_rotvec(tilt * np.array([np.cos(az), np.sin(az), 0.0]))
-        roll = Rotation.from_euler("z", rng.uniform(0, 360), degrees=True)
-        pose = make_transform(
-            align.inv() * tilt_rot * face * roll, ray * wd * rng.uniform(0.6, 1.1)
-        )
+        pose = _random_view(cam, wd, rng, (0.1, 0.9), (0.6, 1.1), max_tilt_deg)
         if not np.all(cam.in_image(cam.project(transform_points(pose, needed_t)), 40.0)):
             continue
         if np.mean(cam.in_image(cam.project(transform_points(pose, ring_t)))) < 0.5:
