@@ -685,12 +685,11 @@ def calibrate_hand_eye(
     if method == "default" and cost == "auto":
         xr, zr, std, repeatability = _adjust_robot_space(views, camera, x, z)
         xi, zi, _, std_i, res_i = _adjust(views, camera, x, z, False)
-        spread_r = np.linalg.norm(
-            _summaries(views, _chain_residuals(views, camera, xr, zr), xr, zr, camera)[1]
-        )
+        res_r = _chain_residuals(views, camera, xr, zr)
+        spread_r = np.linalg.norm(_summaries(views, res_r, xr, zr, camera)[1])
         spread_i = np.linalg.norm(_summaries(views, res_i, xi, zi, camera)[1])
         if spread_r <= spread_i:
-            x, z, res = xr, zr, _chain_residuals(views, camera, xr, zr)
+            x, z, res = xr, zr, res_r
             label = f"joint adjustment, robot errors (start: {best}; target scatter {spread_r:.3f} mm vs image cost {spread_i:.3f} mm)"
         else:
             x, z, res, std, repeatability = xi, zi, res_i, std_i, {}

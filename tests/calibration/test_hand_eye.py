@@ -50,8 +50,22 @@ def test_default_recovers_truth_and_beats_every_closed_form():
         assert closed.rms_px >= res.rms_px
     # The robot-space cost on the same data lands on the same solution within its noise.
     robot = calibrate_hand_eye(views, cam, cost="robot")
-    assert all(v < 0.02 for v in (_errors(robot.flange_from_cam)[0],))
+    assert _errors(robot.flange_from_cam)[0] < 0.02
     assert _errors(robot.flange_from_cam)[1] < 0.15
+
+
+def test_auto_cost_keeps_the_solution_whose_views_agree_best_on_the_target():
+    rng = np.random.default_rng(7)
+    views, cam = S.posed_views(10, rng, noise_px=0.03)
+    views = _with_robot_error(views, rng, 0.005, 0.02)
+    auto = calibrate_hand_eye(views, cam, cost="auto")
+    both = {c: calibrate_hand_eye(views, cam, cost=c) for c in ("robot", "image")}
+    spread = {c: np.linalg.norm(r.target_spread_mm) for c, r in both.items()}
+    chosen = min(spread, key=lambda c: spread[c])
+    assert np.allclose(auto.flange_from_cam, both[chosen].flange_from_cam, atol=1e-9)
+    assert ("robot errors" if chosen == "robot" else "image residuals") in auto.method
+    with pytest.raises(ValueError, match="cost"):
+        calibrate_hand_eye(views, cam, cost="pose")
 
 
 def _with_robot_error(
