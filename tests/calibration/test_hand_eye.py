@@ -48,24 +48,11 @@ def test_default_recovers_truth_and_beats_every_closed_form():
     for method in res.candidates:
         closed = calibrate_hand_eye(views, cam, method)
         assert closed.rms_px >= res.rms_px
-    # The robot-space cost on the same data lands on the same solution within its noise.
+    # The robot-space cost on the same data lands on the same solution within its noise
+    # (a little less efficient here: it finds a small repeatability in the pose noise).
     robot = calibrate_hand_eye(views, cam, cost="robot")
-    assert _errors(robot.flange_from_cam)[0] < 0.02
+    assert _errors(robot.flange_from_cam)[0] < 2 * np.linalg.norm(robot.std_rotation_deg)
     assert _errors(robot.flange_from_cam)[1] < 0.15
-
-
-def test_auto_cost_keeps_the_solution_whose_views_agree_best_on_the_target():
-    rng = np.random.default_rng(7)
-    views, cam = S.posed_views(10, rng, noise_px=0.03)
-    views = _with_robot_error(views, rng, 0.005, 0.02)
-    auto = calibrate_hand_eye(views, cam, cost="auto")
-    both = {c: calibrate_hand_eye(views, cam, cost=c) for c in ("robot", "image")}
-    spread = {c: np.linalg.norm(r.target_spread_mm) for c, r in both.items()}
-    chosen = min(spread, key=lambda c: spread[c])
-    assert np.allclose(auto.flange_from_cam, both[chosen].flange_from_cam, atol=1e-9)
-    assert ("robot errors" if chosen == "robot" else "image residuals") in auto.method
-    with pytest.raises(ValueError, match="cost"):
-        calibrate_hand_eye(views, cam, cost="pose")
 
 
 def _with_robot_error(
@@ -81,6 +68,66 @@ def _with_robot_error(
         )
         out.append(PosedView(v.frame_id, v.base_from_flange @ err, v.points_px, v.points_target))
     return out
+
+
+def test_auto_cost_uses_the_robot_cost_for_repeatability_and_the_image_cost_for_pose_errors():
+    rng = np.random.default_rng(7)
+    views, cam = S.posed_views(20, rng, noise_px=0.03)
+    random_miss = _with_robot_error(views, rng, 0.005, 0.02)
+    auto = calibrate_hand_eye(random_miss, cam)  # "auto" is the default
+    assert auto.robot_test_p > 0.01
+    assert "robot errors" in auto.method
+    alone = calibrate_hand_eye(random_miss, cam, cost="robot")
+    assert np.allclose(auto.flange_from_cam, alone.flange_from_cam, atol=1e-9)
+    # A robot whose misses follow its pose (as absolute-accuracy errors do): up to ~0.05 deg
+    # and 0.3 mm, growing with the flange's distance from the middle of the poses.
+    positions = np.stack([v.base_from_flange[:3, 3] for v in views])
+    scaled = []
+    for v, position in zip(views, positions):
+        u = (position - positions.mean(axis=0)) / 200.0
+        miss = make_transform(
+            Rotation.from_rotvec(np.radians(0.05) * np.array([u[1], -u[0], 0.0])),
+            0.3 * np.array([u[0], u[1], 0.0]),
+        )
+        scaled.append(
+            PosedView(v.frame_id, v.base_from_flange @ miss, v.points_px, v.points_target)
+        )
+    auto = calibrate_hand_eye(scaled, cam)
+    assert auto.robot_test_p < 1e-3
+    assert "image residuals" in auto.method
+    assert any("absolute-accuracy" in w for w in auto.warnings)
+    alone = calibrate_hand_eye(scaled, cam, cost="image")
+    assert np.allclose(auto.flange_from_cam, alone.flange_from_cam, atol=1e-9)
+    # What the image cost is for then: the whole chain reprojects better, the target scatters less.
+    robot = calibrate_hand_eye(scaled, cam, cost="robot")
+    assert auto.rms_px < robot.rms_px
+    assert np.linalg.norm(auto.target_spread_mm) < np.linalg.norm(robot.target_spread_mm)
+    quality = auto.quality()
+    assert quality["robot_test_p"] == auto.robot_test_p and quality["held_out_rms_px"] > 0
+    with pytest.raises(ValueError, match="cost"):
+        calibrate_hand_eye(views, cam, cost="pose")
+
+
+def test_held_out_rms_matches_refitting_without_each_view():
+    # The linearised leave-one-view-out RMS against honest refits on the other views (they
+    # also re-estimate the repeatability, which the linearisation holds: within 10 %).
+    rng = np.random.default_rng(11)
+    views, cam = S.posed_views(8, rng, noise_px=0.05)
+    views = _with_robot_error(views, rng, 0.01, 0.05)
+    for cost in ("robot", "image"):
+        full = calibrate_hand_eye(views, cam, cost=cost)
+        squares, count = 0.0, 0
+        for k, v in enumerate(views):
+            rest = calibrate_hand_eye(views[:k] + views[k + 1 :], cam, cost=cost)
+            cam_from_target = (
+                invert_transform(v.base_from_flange @ rest.flange_from_cam) @ rest.base_from_target
+            )
+            uv = cam.project(transform_points(cam_from_target, v.points_target))
+            squares += float(np.sum((uv - v.points_px) ** 2))
+            count += len(uv)
+        refit = np.sqrt(squares / count)
+        assert abs(full.held_out_rms_px - refit) < 0.1 * refit, cost
+        assert full.held_out_rms_px > full.rms_px
 
 
 def test_robot_cost_beats_image_cost_when_the_robot_repeatability_dominates():
