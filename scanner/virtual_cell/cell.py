@@ -232,6 +232,10 @@ class CaptureConfig:
     check_frames: int = 9
     max_tilt_deg: float = 45.0
     posed_tilt_deg: tuple[float, float] = (10.0, 30.0)
+    hand_held_distance: tuple[float, float] = (0.6, 1.15)
+    """Range of the hand-held views' distance, times ``working_distance_mm``."""
+    partial_view_fraction: float = 0.5
+    """Share of hand-held views where the card may run partly out of the image."""
 
     def __post_init__(self) -> None:
         if self.working_distance_mm <= 0:
@@ -247,6 +251,16 @@ class CaptureConfig:
         )
         if min(counts) < 0:
             raise ValueError(f"capture: expected frame counts >= 0, got {counts}")
+        near, far = self.hand_held_distance
+        if not 0.1 <= near <= far <= 5.0:
+            raise ValueError(
+                "capture.hand_held_distance: expected 0.1 <= near <= far <= 5 (times the "
+                f"working distance), got {self.hand_held_distance}"
+            )
+        if not 0.0 <= self.partial_view_fraction <= 1.0:
+            raise ValueError(
+                f"capture.partial_view_fraction: expected 0..1, got {self.partial_view_fraction}"
+            )
         lo, hi = self.posed_tilt_deg
         if not 0 <= lo <= hi < 80 or not 0 < self.max_tilt_deg < 80:
             raise ValueError(

@@ -88,21 +88,51 @@ def _in_view(
 def hand_held_view(
     cell: CellConfig, rng: np.random.Generator, target: TargetSpec | None = None
 ) -> NDArray:
-    """A target held by hand: tilt up to ``capture.max_tilt_deg``, any in-plane rotation, at
-    working distance, centre in view, fully or partly in view, the laser line crossing it."""
+    """A target held by hand for the intrinsics, the way a calibration guide asks for it.
+
+    Tilt up to ``capture.max_tilt_deg``, any in-plane rotation, at a distance drawn from
+    ``capture.hand_held_distance`` (times the working distance), and the target's centre at a
+    random place of the image: with probability ``capture.partial_view_fraction`` the card may
+    run out of the image (at least half of its largest ring stays in view), so that ring
+    edges reach the image's corners, where the distortion is strongest and otherwise only
+    extrapolated; the other views show the whole target (the paper's method needs the
+    diameters' end points). The centre O and the orientation marker always stay in view, and
+    the laser line crosses the target.
+    """
     spec = cell.target_spec() if target is None else target
     centre, radius = target_extent_mm(spec)
     wd = cell.capture.working_distance_mm
+    near, far = cell.capture.hand_held_distance
+    cam = cell.camera_model()
+    needed = [centre]
+    if isinstance(spec, ConcentricCirclesTarget):
+        mx, my = spec.orientation_marker.center_mm
+        needed.append(np.array([mx, my, 0.0]))
+    needed_t = np.vstack(needed)
+    angles = np.linspace(0.0, 2.0 * np.pi, 48, endpoint=False)
+    outline_t = centre + radius * np.column_stack([np.cos(angles), np.sin(angles), 0.0 * angles])
     for _ in range(_MAX_TRIES):
+        partial = rng.random() < cell.capture.partial_view_fraction
         tilt = np.radians(cell.capture.max_tilt_deg) * np.sqrt(rng.uniform(0.02, 1.0))
         az = rng.uniform(0, 2 * np.pi)
-        dist = wd * rng.uniform(0.85, 1.15)
-        aim = centre + np.array([*rng.uniform(-0.5, 0.5, 2) * radius, 0.0])
+        dist = wd * rng.uniform(near, far)
+        aim = centre + np.array([*rng.uniform(-0.3, 0.3, 2) * radius, 0.0])
         pos = aim + dist * np.array(
             [np.sin(tilt) * np.cos(az), np.sin(tilt) * np.sin(az), np.cos(tilt)]
         )
         c_t = _look_from(pos, aim, rng.uniform(0, 2 * np.pi))
-        if not _in_view(cell, c_t, centre[None, :], 40.0):
+        # Turn the camera about its centre so that the aimed point lands on a random pixel:
+        # the target's tilt against its line of sight stays, its place in the image changes.
+        u = rng.uniform(0.05, 0.95) * cam.width
+        v = rng.uniform(0.05, 0.95) * cam.height
+        ray = np.linalg.solve(cam.K, [u, v, 1.0])
+        turn, _ = Rotation.align_vectors([ray], [[0.0, 0.0, 1.0]])
+        c_t = make_transform(turn, np.zeros(3)) @ c_t
+        if not _in_view(cell, c_t, needed_t, 40.0):
+            continue
+        outline_c = transform_points(c_t, outline_t)
+        seen = cam.in_image(cam.project(outline_c), 2.0) & (outline_c[:, 2] > 10.0)
+        if np.mean(seen) < (0.5 if partial else 1.0):
             continue
         if stripe_offset_mm(cell, c_t) > 0.75 * radius:
             continue

@@ -158,12 +158,13 @@ def test_virtual_cell_views_detected_labelled_and_calibrated():
         ob = detect_target(img, spec)
         if ob:
             # Labelling: A, C where the true camera sees them (within the distortion-limited
-            # accuracy of the crossings).
+            # accuracy of the crossings: line and conic fits of distorted curves, worst in the
+            # views that reach the image's corners; a wrong label is off by tens of pixels).
             for name in ("A", "C"):
                 if name in ob.named_px:
                     p = spec.named_points()[name]
                     want = cam.project(transform_points(T, p[None]))[0]
-                    assert np.linalg.norm(ob.named_px[name] - want) < 0.3
+                    assert np.linalg.norm(ob.named_px[name] - want) < 1.0
         obs.append(ob)
         truths.append(T)
     assert sum(map(bool, obs)) >= 6, [o.reason for o in obs if not o]
