@@ -85,10 +85,14 @@ def test_virtual_cell_default_calibration_matches_truth(modern_cell):
     res = calibrate_session(read_session(out / "calibration"), progress=False)
     cal = res.calibration
     na, dd = _plane_errors(cal.light_plane, truth.light_plane)
-    # Measured on seed 0: 0.007 deg, 0.003 mm; 0.020 deg, 0.054 mm (robot repeatability).
-    assert na < 0.02 and abs(dd) < 0.05
-    assert angle_between_rotations_deg(cal.flange_from_cam, truth.flange_from_cam) < 0.05
-    assert np.linalg.norm(cal.flange_from_cam[:3, 3] - truth.flange_from_cam[:3, 3]) < 0.15
+    # Issue #4's targets: normal 0.002 deg, d 0.02 mm, hand-eye 0.008 deg and 0.05 mm.
+    # Measured on seed 0: 0.0018 deg, -0.0015 mm; 0.0018 deg, 0.011 mm (robot cost: the
+    # robot's misses do not follow its pose here). The normal gets 50 % headroom: it rests on
+    # the principal point, whose own std is 0.09 px.
+    assert na < 0.003 and abs(dd) < 0.02
+    assert angle_between_rotations_deg(cal.flange_from_cam, truth.flange_from_cam) < 0.008
+    assert np.linalg.norm(cal.flange_from_cam[:3, 3] - truth.flange_from_cam[:3, 3]) < 0.05
+    assert "robot errors" in cal.quality["hand_eye"]["method"]
     q = cal.quality
     for key in (
         "method",
