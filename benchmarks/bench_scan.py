@@ -180,7 +180,9 @@ def _fit_plane(p: np.ndarray) -> tuple[np.ndarray, float]:
     return n, float(-n @ c)
 
 
-def accuracy(cell_dir: Path, max_incidence_deg: float | None = 65.0) -> None:
+def accuracy(
+    cell_dir: Path, max_incidence_deg: float | None = 65.0, laser_origin: bool = True
+) -> None:
     from scanner.scanning.pipeline import ScanOptions, scan_session
     from scanner.virtual_cell.truth import read_truth
 
@@ -189,6 +191,8 @@ def accuracy(cell_dir: Path, max_incidence_deg: float | None = 65.0) -> None:
     spheres = [{"id": o.id, "params": o.params} for o in truth.objects if o.type == "sphere"]
     sphere_pairs = truth.extra.get("sphere_pairs", [])
     limit = f"incidence <= {max_incidence_deg:g} deg" if max_incidence_deg else "no incidence limit"
+    if max_incidence_deg and not laser_origin:
+        limit += ", viewing angle only (no laser origin)"
     print(f"\nVirtual cell accuracy ({cell_dir}, true calibration, {limit})")
     header = (
         f"{'mode':8s} {'points':>8s} {'time':>6s} {'sphere':>9s} {'d err mm':>9s} {'fit RMS':>8s}"
@@ -202,7 +206,7 @@ def accuracy(cell_dir: Path, max_incidence_deg: float | None = 65.0) -> None:
             ScanOptions(
                 mode=mode,
                 max_incidence_deg=max_incidence_deg or None,
-                laser_origin_mm=tuple(truth.laser_origin_cam),
+                laser_origin_mm=tuple(truth.laser_origin_cam) if laser_origin else None,
             ),
             None,
             progress=False,
@@ -277,6 +281,11 @@ def main() -> None:
         default=65.0,
         help="drop points seen or lit beyond this angle, degrees (0: keep all)",
     )
+    parser.add_argument(
+        "--no-laser-origin",
+        action="store_true",
+        help="incidence limit from the viewing angle only (the sensor drawing's laser origin unknown)",
+    )
     args = parser.parse_args()
     if args.frames > 0:
         throughput(args.frames)
@@ -291,7 +300,7 @@ def main() -> None:
             f"\nsimulated {args.simulate} sweep frames in {time.perf_counter() - t0:.0f} s into {cell}"
         )
     if cell is not None:
-        accuracy(cell, args.max_incidence)
+        accuracy(cell, args.max_incidence, not args.no_laser_origin)
 
 
 if __name__ == "__main__":
