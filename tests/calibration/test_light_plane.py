@@ -84,6 +84,30 @@ def test_calibrate_light_plane_recovers_truth_and_rejects_a_bad_frame():
     assert res.rms_mm < 0.05
 
 
+def test_a_frame_whose_target_pose_is_slightly_off_is_rejected_by_its_mean_offset():
+    # The stripe noise (0.3 px) spreads each frame's points by ~0.1 mm, so a target pose
+    # 0.15 mm off along its normal hides in the RMS; the frame's mean offset gives it away.
+    rng = np.random.default_rng(3)
+    cam = S.camera()
+    views = []
+    for i in range(10):
+        ct = S.look_at_target(rng)
+        views.append(LaserView(i, _stripe_on_target(cam, ct, rng, noise_px=0.3), ct))
+    shifted = views[4].cam_from_target.copy()
+    shifted[:3, 3] += 0.15 * shifted[:3, 2]  # the target believed 0.15 mm off its true plane
+    views[4] = LaserView(4, views[4].stripe_px, shifted)
+    res = calibrate_light_plane(views, cam)
+    assert res, res.reason
+    assert [r["frame_id"] for r in res.rejected] == [4]
+    assert "on average" in res.rejected[0]["reason"]
+    # The same plane as without the frame; keeping it (offset test off) pulls d.
+    without = calibrate_light_plane(views[:4] + views[5:], cam)
+    assert np.allclose(res.plane.normal, without.plane.normal) and res.plane.d == without.plane.d
+    kept = calibrate_light_plane(views, cam, offset_factor=1e9, min_offset_mm=1e9)
+    assert kept.rejected == []
+    assert abs(abs(kept.plane.d) - abs(D_TRUE)) > abs(abs(res.plane.d) - abs(D_TRUE))
+
+
 def test_calibrate_light_plane_needs_two_frames():
     rng = np.random.default_rng(2)
     cam = S.camera()
