@@ -38,6 +38,12 @@ BENCHMARKS: list[tuple[str, str, list[str], list[str]]] = [
         ["--work", "{work}/calibration", "--cells", "modern"],
     ),
     (
+        "calibrate_cli",
+        "`scanner calibrate` on a 20-frame 1280x1024 session",
+        ["--work", "{work}/calibrate_cli"],
+        ["--work", "{work}/calibrate_cli"],
+    ),
+    (
         "ef",
         "EF check (the paper's Table III) on both virtual cells",
         ["--work", "{work}/ef"],
