@@ -124,6 +124,23 @@ def test_saturated_flat_tops_are_centred_and_flagged(mode):
     assert abs(np.mean(err)) < 0.03
 
 
+@pytest.mark.parametrize("mode", ["fast", "precise"])
+def test_saturated_stripe_on_a_bright_background_with_a_laser_off_frame(mode):
+    # A white card under room light (grey 175) and a laser that clips at 255: after the
+    # laser-off frame is subtracted the plateau is ~80 grey levels of noisy flat top. It must
+    # stay one saturated run per line (as in real line-laser captures), not a row of ridges.
+    seg = StripeSegment((0, SHAPE[0]), (120.4, 0.3), amplitude=400.0, sigma_px=3.0)
+    img, truth = render_stripes(SHAPE, [seg], background=175.0, noise=2.0, seed=12)
+    off, _ = render_stripes(SHAPE, [], background=175.0, noise=2.0, seed=13)
+    assert (img == 255).sum(axis=1).min() >= 5
+    p = extract_stripe(img, mode=mode, orientation="rows", background=off)
+    err = _errors(p, *truth[0])
+    assert len(p) == SHAPE[0]
+    assert np.all(p.flags & StripeFlag.SATURATED)
+    assert not np.any(p.flags & StripeFlag.SECONDARY)
+    assert np.sqrt(np.mean(err**2)) < 0.15
+
+
 def test_weaker_reflection_is_dropped_and_flagged():
     main = StripeSegment((0, SHAPE[0]), (120.0, 0.2), amplitude=170.0)
     ghost = StripeSegment((60, 140), (150.0, 0.2), amplitude=60.0, sigma_px=2.5)
