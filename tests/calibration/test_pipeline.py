@@ -177,6 +177,8 @@ def test_linelight_plane_agrees_with_the_authors():
 
     fig = bench_linelight(root.parent)
     assert fig["normal_deg"] < 0.5
-    # Their cloud lies about 0.65 mm (mean) from our plane: see the benchmark notes.
-    assert abs(fig["cloud_mean_mm"]) < 1.0
-    assert fig["cloud_rms_mm"] < 1.2
+    # Issue #4: their cloud within 0.5 mm of our plane. Measured: -0.29 mm mean, 0.51 mm RMS
+    # (their own cloud lies up to 0.53 mm off their own plane), our stripe points 0.31 mm RMS.
+    assert abs(fig["cloud_mean_mm"]) < 0.5
+    assert fig["cloud_rms_mm"] < 0.6
+    assert fig["plane_rms_mm"] < 0.4
