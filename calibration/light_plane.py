@@ -385,9 +385,11 @@ def calibrate_light_plane(
         }
         med = float(np.median(list(frame_rms.values())))
         limit = max(reject_factor * med, 0.05)
-        # A frame whose target pose is off lifts all its points together: its mean offset
-        # stands out from the other frames' long before its RMS does (400 points average the
-        # stripe noise down; 0.22 mm off against a spread of 0.01 mm on the paper cell).
+        # A frame whose target pose is off, or whose stripe runs along printed ink (which
+        # darkens one side of it and shifts its centre), lifts all its points together: its
+        # mean offset stands out from the other frames' long before its RMS does (400 points
+        # average the stripe noise down; on the paper cell a stripe along the rings' tangents
+        # sat 0.22 mm off against a spread of 0.01 mm, its target pose being right).
         frame_mean = {
             i: float(np.mean(per_frame_pts[i] @ plane_fit.normal + plane_fit.d)) for i in ids
         }
@@ -404,7 +406,7 @@ def calibrate_light_plane(
             elif len(ids) >= 4 and abs(frame_mean[i] - centre) > offset_limit:
                 why[i] = (
                     f"stripe points {frame_mean[i] - centre:+.3f} mm off the common plane on "
-                    f"average (limit {offset_limit:.3f} mm): the frame's target pose is suspect"
+                    f"average (limit {offset_limit:.3f} mm): its target pose, or its stripe (printed ink along it), is off"
                 )
         bad = list(why)
         if not bad or len(ids) - len(bad) < min_frames:
