@@ -1105,13 +1105,14 @@ def extract_stripe(
         # A pixel saturated in the laser-on frame stays saturated after the subtraction: on
         # a bright background the laser's clipped plateau would otherwise become a flat
         # run below the saturation level, with spurious ridges all over its noisy top.
-        saturated = img >= _saturation_level(img, opts)
+        level = _saturation_level(img, opts)
+        saturated = img >= level
         if img.dtype in (np.uint8, np.uint16) and bg.dtype == img.dtype:
             img = cv2.subtract(img, bg)
         else:
             img = np.clip(img.astype(np.float32) - bg.astype(np.float32), 0, None)
-        if saturated.any():
-            img[saturated] = _saturation_level(img, opts)
+        if np.isfinite(level) and saturated.any():
+            img[saturated] = level
     if orientation == "auto":
         orientation = orientation_from_image(img)
     work = img if orientation == "rows" else cv2.transpose(img)
