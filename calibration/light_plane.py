@@ -379,10 +379,8 @@ def calibrate_light_plane(
     for _ in range(5):
         if not plane_fit:
             break
-        frame_rms = {
-            i: float(np.sqrt(np.mean((per_frame_pts[i] @ plane_fit.normal + plane_fit.d) ** 2)))
-            for i in ids
-        }
+        residual = {i: per_frame_pts[i] @ plane_fit.normal + plane_fit.d for i in ids}
+        frame_rms = {i: float(np.sqrt(np.mean(r**2))) for i, r in residual.items()}
         med = float(np.median(list(frame_rms.values())))
         limit = max(reject_factor * med, 0.05)
         # A frame whose target pose is off, or whose stripe runs along printed ink (which
@@ -390,9 +388,7 @@ def calibrate_light_plane(
         # mean offset stands out from the other frames' long before its RMS does (400 points
         # average the stripe noise down; on the paper cell a stripe along the rings' tangents
         # sat 0.22 mm off against a spread of 0.01 mm, its target pose being right).
-        frame_mean = {
-            i: float(np.mean(per_frame_pts[i] @ plane_fit.normal + plane_fit.d)) for i in ids
-        }
+        frame_mean = {i: float(np.mean(r)) for i, r in residual.items()}
         means = np.array(list(frame_mean.values()))
         centre = float(np.median(means))
         spread = 1.4826 * float(np.median(np.abs(means - centre)))
