@@ -35,6 +35,15 @@ def _stripe_on_target(cam, ct, rng, noise_px=0.1, n=300):
     return cam.project(pts) + rng.normal(0, noise_px, (n, 2))
 
 
+def _laser_views(cam, rng, n, noise_px=0.1, extent=None):
+    """``n`` laser frames, ids 0..n-1, each at a random target pose with its stripe."""
+    views = []
+    for i in range(n):
+        ct = S.look_at_target(rng)
+        views.append(LaserView(i, _stripe_on_target(cam, ct, rng, noise_px=noise_px), ct, extent))
+    return views
+
+
 def test_fit_plane_recovers_truth():
     rng = np.random.default_rng(0)
     e1 = np.cross(N_TRUE, [0, 1, 0])
@@ -69,10 +78,7 @@ def test_fit_plane_refuses_collinear_points_and_checks_shape():
 def test_calibrate_light_plane_recovers_truth_and_rejects_a_bad_frame():
     rng = np.random.default_rng(1)
     cam = S.camera()
-    views = []
-    for i in range(8):
-        ct = S.look_at_target(rng)
-        views.append(LaserView(i, _stripe_on_target(cam, ct, rng), ct, (-100, 100, -100, 100)))
+    views = _laser_views(cam, rng, 8, extent=(-100, 100, -100, 100))
     # One frame whose stripe is shifted by 8 px (wrong target pose or another line).
     views.append(LaserView(99, views[0].stripe_px + np.array([0.0, 8.0]), views[0].cam_from_target))
     res = calibrate_light_plane(views, cam)
@@ -89,10 +95,7 @@ def test_a_frame_whose_target_pose_is_slightly_off_is_rejected_by_its_mean_offse
     # 0.15 mm off along its normal hides in the RMS; the frame's mean offset gives it away.
     rng = np.random.default_rng(3)
     cam = S.camera()
-    views = []
-    for i in range(10):
-        ct = S.look_at_target(rng)
-        views.append(LaserView(i, _stripe_on_target(cam, ct, rng, noise_px=0.3), ct))
+    views = _laser_views(cam, rng, 10, noise_px=0.3)
     shifted = views[4].cam_from_target.copy()
     shifted[:3, 3] += 0.15 * shifted[:3, 2]  # the target believed 0.15 mm off its true plane
     views[4] = LaserView(4, views[4].stripe_px, shifted)
