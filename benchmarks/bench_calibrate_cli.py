@@ -77,9 +77,10 @@ def main() -> None:
     if done.returncode != 0:
         sys.exit(f"scanner calibrate failed: {done.stderr.strip().splitlines()[-1]}")
     timings = json.loads(calib.read_text())["quality"]["timings"]
-    print(f"scanner calibrate, {args.frames} frames {read_session(sub).width}x", end="")
+    size = read_session(sub)
     print(
-        f"{read_session(sub).height}: {wall:.1f} s wall (target 20 s), process start and report included"
+        f"scanner calibrate, {args.frames} frames {size.width}x{size.height}: {wall:.1f} s wall "
+        "(target 20 s), process start and report included"
     )
     for stage, seconds in timings.items():
         print(f"  {stage:16s} {seconds:6.2f} s")
