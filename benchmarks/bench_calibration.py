@@ -14,7 +14,11 @@ Prints tables (Markdown) for:
 Usage::
 
     python benchmarks/bench_calibration.py [--cells modern paper] [--work /tmp/bench_calib]
-        [--skip-real] [--skip-cells]
+        [--skip-real] [--skip-cells] [--robot-draws 50]
+
+``--robot-draws``: the hand-eye solvers over fresh draws of the robot's repeatability error
+(see :func:`robot_draw_study`); one session is one draw, too few to rank solvers that are
+within the robot's noise of each other.
 """
 
 from __future__ import annotations
@@ -24,11 +28,13 @@ import logging
 import os
 import pickle
 import time
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from calibration.detect import detect_target
 from calibration.extrinsics import estimate_pose
@@ -39,10 +45,11 @@ from calibration.opencv_adapter import AX_XB_METHODS
 from calibration.pipeline import calibrate_session, target_extent_mm
 from scanner.calibration_file import LightPlane
 from scanner.camera import CameraModel
-from scanner.conventions import angle_between_rotations_deg
+from scanner.conventions import angle_between_rotations_deg, invert_transform, make_transform
 from scanner.fileio import load_gray_image
 from scanner.session import read_session
 from scanner.targets import ChessboardTarget, CircleGridTarget
+from scanner.virtual_cell.cell import load_cell
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -92,7 +99,18 @@ def _simulate(cell: str, out: Path, target: str | None, seed: int) -> Any:
     return read_truth(out / "truth.json")
 
 
-def opencv_anchor(session_dir: Path) -> dict[str, Any]:
+@dataclass
+class Anchor:
+    """The OpenCV anchor's answers, and the posed views its hand-eye solvers saw."""
+
+    plane: LightPlane
+    hand_eye: dict[str, np.ndarray]
+    rms: float
+    views: list[PosedView]
+    camera: CameraModel
+
+
+def opencv_anchor(session_dir: Path) -> Anchor:
     """OpenCV chessboard calibration at the same poses, five AX=XB solvers, Horus plane fit."""
     from scanner.scanning.stripe import extract_stripe
 
@@ -154,14 +172,17 @@ def opencv_anchor(session_dir: Path) -> dict[str, Any]:
         r = calibrate_hand_eye(views, cam, m)
         if r:
             hand_eye[m] = r.flange_from_cam
-    return {"plane": plane, "hand_eye": hand_eye, "rms": rms}
+    return Anchor(plane, hand_eye, float(rms), views, cam)
 
 
 def bench_cell(
-    cell: str, work: Path, seed: int = 0
-) -> list[tuple[str, str, float, float, float, float, float]]:
-    """Rows: (cell, method, normal deg, d mm, he rot deg, he trans mm, seconds)."""
+    cell: str, work: Path, seed: int = 0, robot_draws: int = 0
+) -> tuple[list[tuple[str, str, float, float, float, float, float, float, float]], list[str]]:
+    """Rows (cell, method, normal deg, d mm, he rot deg, he trans mm, plane in flange deg and
+    mm, seconds), and the robot-draw study's table lines (none when ``robot_draws`` is 0)."""
     rows = []
+    own_views: list[PosedView] = []
+    own_camera = None
     truth = _simulate(cell, work / f"{cell}_own", None, seed)
     session = read_session(work / f"{cell}_own" / "calibration")
     cache = work / f"{cell}_own" / "observations.pkl"
@@ -186,16 +207,90 @@ def bench_cell(
             truth.flange_from_cam,
         )
         rows.append((cell, method, na, dd, hr, ht, fa, fd, dt))
+        if method == "default":
+            c = res.calibration
+            own_views, own_camera = res.hand_eye_views, CameraModel(c.width, c.height, c.K, c.dist)
     _simulate(cell, work / f"{cell}_chess", "chessboard", seed)
     t0 = time.perf_counter()
     anchor = opencv_anchor(work / f"{cell}_chess" / "calibration")
     dt = time.perf_counter() - t0
-    na, dd = plane_errors(anchor["plane"], truth.light_plane)
-    for m, x in anchor["hand_eye"].items():
+    na, dd = plane_errors(anchor.plane, truth.light_plane)
+    for m, x in anchor.hand_eye.items():
         hr, ht = hand_eye_errors(x, truth.flange_from_cam)
-        fa, fd = flange_plane_errors(anchor["plane"], x, truth.light_plane, truth.flange_from_cam)
+        fa, fd = flange_plane_errors(anchor.plane, x, truth.light_plane, truth.flange_from_cam)
         rows.append((cell, f"OpenCV chessboard + {m} + Horus plane", na, dd, hr, ht, fa, fd, dt))
-    return rows
+    study: list[str] = []
+    if robot_draws > 0 and own_camera is not None:
+        study = robot_draw_study(
+            cell, own_views, own_camera, anchor, truth, robot_draws, np.random.default_rng(seed)
+        )
+    return rows, study
+
+
+def robot_draw_study(
+    cell: str,
+    own_views: list[PosedView],
+    own_camera: CameraModel,
+    anchor: Anchor,
+    truth: Any,
+    draws: int,
+    rng: np.random.Generator,
+) -> list[str]:
+    """Hand-eye errors over fresh draws of the robot's repeatability error, images kept.
+
+    One simulated session is one draw of the robot's pose errors, and the hand-eye rotation
+    error of a good solver is almost all robot error (about 0.001 deg per axis on the modern
+    cell): one draw cannot rank two solvers that differ by less. Each draw here keeps the
+    images (so the detections, and each view's target pose) and the true stops, and reports
+    new poses ``reported = actual @ inv(error)`` with the cell's repeatability, the same
+    errors for the concentric views and the chessboard views at the same stops. Draw 0 is
+    the simulated session itself.
+
+    Returns Markdown table lines: per solver the mean and RMS of the rotation and
+    translation errors over the draws, and how often the default does better (paired).
+    """
+    robot = load_cell(cell).robot
+    actual = {
+        f.id: f.base_from_flange_true
+        for f in truth.sessions["calibration"].frames
+        if f.base_from_flange_true is not None
+    }
+    solvers = [("default", "concentric", own_views, own_camera)]
+    solvers += [(m, "concentric", own_views, own_camera) for m in AX_XB_METHODS]
+    solvers += [(m, "chessboard", anchor.views, anchor.camera) for m in AX_XB_METHODS]
+    errors = np.full((len(solvers), draws, 2), np.nan)
+    ids = sorted({v.frame_id for v in own_views} | {v.frame_id for v in anchor.views})
+    for d in range(draws):
+        reported = {}
+        for i in ids:
+            miss = make_transform(
+                Rotation.from_rotvec(np.radians(robot.repeatability_deg) * rng.standard_normal(3)),
+                robot.repeatability_mm * rng.standard_normal(3),
+            )
+            reported[i] = actual[i] @ invert_transform(miss)
+        for k, (method, _, views, camera) in enumerate(solvers):
+            if d > 0:  # draw 0: the session as simulated
+                views = [replace(v, base_from_flange=reported[v.frame_id]) for v in views]
+            res = calibrate_hand_eye(views, camera, method)
+            if res:
+                errors[k, d] = hand_eye_errors(res.flange_from_cam, truth.flange_from_cam)
+    lines = [
+        f"{cell}: {draws} draws of the robot's repeatability error "
+        f"({robot.repeatability_deg} deg, {robot.repeatability_mm} mm per axis), images kept:",
+        "",
+        "| solver | target views | rot mean (deg) | rot RMS | trans mean (mm) | trans RMS "
+        "| default better: rot | trans |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for k, (method, target, _, _) in enumerate(solvers):
+        e = errors[k]
+        better = np.mean(errors[0] < e, axis=0) if k else (np.nan, np.nan)
+        lines.append(
+            f"| {method} | {target} | {np.nanmean(e[:, 0]):.5f} "
+            f"| {np.sqrt(np.nanmean(e[:, 0] ** 2)):.5f} | {np.nanmean(e[:, 1]):.4f} "
+            f"| {np.sqrt(np.nanmean(e[:, 1] ** 2)):.4f} | {better[0]:.2f} | {better[1]:.2f} |"
+        )
+    return lines
 
 
 # ----------------------------------------------------------------------------------- real data
@@ -263,6 +358,12 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=Path("/tmp/bench_calibration"))
     ap.add_argument("--skip-real", action="store_true")
     ap.add_argument("--skip-cells", action="store_true")
+    ap.add_argument(
+        "--robot-draws",
+        type=int,
+        default=50,
+        help="hand-eye study over this many draws of the robot's error (0: none)",
+    )
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     if not args.skip_cells:
@@ -271,13 +372,19 @@ def main() -> None:
             "| hand-eye trans (mm) | plane in flange: normal (deg) | d (mm) | time (s) |"
         )
         print("|---|---|---|---|---|---|---|---|---|")
+        studies = []
         for cell in args.cells:
-            for c, m, na, dd, hr, ht, fa, fd, dt in bench_cell(cell, args.work):
+            rows, study = bench_cell(cell, args.work, robot_draws=args.robot_draws)
+            for c, m, na, dd, hr, ht, fa, fd, dt in rows:
                 print(
                     f"| {c} | {m} | {na:.5f} | {dd:+.4f} | {hr:.5f} | {ht:.4f} "
                     f"| {fa:.5f} | {fd:+.4f} | {dt:.1f} |"
                 )
+            studies.append(study)
         print()
+        for study in studies:
+            print("\n".join(study))
+            print()
     root = real_data_root()
     if args.skip_real or not root.is_dir():
         return

@@ -74,6 +74,9 @@ class CalibrationResult:
     intrinsics : object
         The :class:`calibration.intrinsics.IntrinsicsResult`.
     session : Session
+    hand_eye_views : list of PosedView
+        The posed views the default hand-eye adjusted (empty for the paper's method), kept so
+        that a study can rerun the hand-eye alone.
     """
 
     calibration: Calibration
@@ -84,7 +87,7 @@ class CalibrationResult:
     hand_eye: HandEyeResult
     intrinsics: Any
     session: Session
-    extras: dict[str, Any] = field(default_factory=dict)
+    hand_eye_views: list[PosedView] = field(default_factory=list)
 
     @property
     def quality(self) -> dict[str, Any]:
@@ -382,10 +385,10 @@ def calibrate_session(
     stage("hand-eye")
     t1 = time.perf_counter()
     posed = [f for f in found if f.has_pose and f.id in cam_from_target]
+    views: list[PosedView] = []
     if method == "paper":
         he = _paper_hand_eye(session, posed, observations, stripes, camera, plane_res, target)  # type: ignore[arg-type]
     else:
-        views = []
         for f in posed:
             obs = observations[f.id]
             px = obs.points_px
@@ -453,7 +456,7 @@ def calibrate_session(
         he,
         intr,
         session,
-        extras={"light_plane_default": plane_default, "light_plane_paper": plane_paper},
+        hand_eye_views=views,
     )
 
 
