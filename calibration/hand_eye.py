@@ -134,7 +134,8 @@ class HandEyeResult:
         target pose, carried into the base, lies from ``base_from_target``).
     std_rotation_deg, std_translation_mm : ndarray, shape (3,)
         One-sigma uncertainty of ``flange_from_cam`` (rotation about the camera axes,
-        translation), NaN for closed forms.
+        translation), NaN for closed forms. The rotation's includes the principal point's
+        share when its uncertainty was given.
     target_spread_mm : ndarray, shape (3,)
         Standard deviation (x, y, z) of the target origin in the base frame across views.
     camera : CameraModel or None
@@ -786,6 +787,7 @@ def calibrate_hand_eye(
     method: str = "default",
     refine_intrinsics: bool = False,
     cost: str = "auto",
+    principal_point_std_px: tuple[float, float] | None = None,
 ) -> HandEyeResult:
     """Solve ``flange_from_cam`` and ``base_from_target`` from posed views of the fixed target.
 
@@ -804,6 +806,12 @@ def calibrate_hand_eye(
     cost : {"auto", "robot", "image"}
         What the default adjustment minimises (see the module docstring). ``"auto"``: the
         robot cost unless the robot's misses follow its pose.
+    principal_point_std_px : (float, float), optional
+        The intrinsics' own standard deviations of (cx, cy). A principal-point error turns
+        the camera frame, about its y and x axes by ``dcx / fx`` and ``dcy / fy``, and the
+        hand-eye rotation with it, a turn no robot motion can reveal (``C_i -> G C_i`` and
+        ``X -> X G^-1`` explain the same data; the translation stays). It is added to the
+        rotation's standard deviation; on the paper cell it is the larger share.
 
     Returns
     -------
@@ -883,6 +891,10 @@ def calibrate_hand_eye(
         held_out = _held_out_rms(views, camera, fit)
         x, z, cam, res = fit.flange_from_cam, fit.base_from_target, fit.camera, fit.residuals
         std_r, std_t = fit.std[:3], fit.std[3:]
+        if principal_point_std_px is not None and not refine_intrinsics:
+            scx, scy = principal_point_std_px
+            gauge = np.degrees([scy / cam.K[1, 1], scx / cam.K[0, 0], 0.0])
+            std_r = np.sqrt(std_r**2 + gauge**2)
         label = {
             "robot": "joint adjustment, robot errors",
             "image": "joint adjustment, image residuals",

@@ -400,7 +400,14 @@ def calibrate_session(
             views.append(
                 PosedView(f.id, f.base_from_flange, px, obs.points_target, cam_from_target[f.id])  # type: ignore[arg-type]
             )
-        he = calibrate_hand_eye(views, camera, "default", refine_intrinsics=refine_intrinsics)
+        pp_std = (intr.std["cx"], intr.std["cy"]) if {"cx", "cy"} <= intr.std.keys() else None
+        he = calibrate_hand_eye(
+            views,
+            camera,
+            "default",
+            refine_intrinsics=refine_intrinsics,
+            principal_point_std_px=pp_std,
+        )
     if not he:
         raise ValueError(f"hand-eye ({method}): {he.reason}")
     if he.camera is not None and refine_intrinsics:

@@ -11,6 +11,7 @@ from calibration.hand_eye import (
     check_robot_motion,
     paper_hand_eye,
 )
+from scanner.camera import CameraModel
 from scanner.conventions import (
     RotationConvention,
     angle_between_rotations_deg,
@@ -158,6 +159,34 @@ def test_robot_cost_beats_image_cost_when_the_robot_repeatability_dominates():
     rot = np.mean([r["rotation_deg"] for r in repeat])
     trans = np.mean([r["translation_mm"] for r in repeat])
     assert 0.0035 < rot < 0.0065 and 0.014 < trans < 0.026
+
+
+def test_a_principal_point_error_turns_the_hand_eye_and_its_std_says_by_how_much():
+    rng = np.random.default_rng(5)
+    views, cam = S.posed_views(15, rng, noise_px=0.03)
+    shifted_k = cam.K.copy()
+    shifted_k[0, 2] -= 0.3
+    shifted_k[1, 2] += 0.5
+    shifted = CameraModel(cam.width, cam.height, shifted_k, cam.dist)
+    right = calibrate_hand_eye(views, cam)
+    wrong = calibrate_hand_eye(views, shifted)
+    turn_deg = np.degrees(
+        Rotation.from_matrix(
+            right.flange_from_cam[:3, :3].T @ wrong.flange_from_cam[:3, :3]
+        ).as_rotvec()
+    )
+    # About the camera's x axis by dcy / fy, about its y axis by dcx / fx (the PnP hands
+    # about a tenth of the turn to a sideways shift, measured 0.87-0.90 of it here).
+    expected_deg = np.degrees([0.5 / cam.K[1, 1], 0.3 / cam.K[0, 0]])
+    assert np.all(np.abs(turn_deg[:2]) > 0.7 * expected_deg)
+    assert np.all(np.abs(turn_deg[:2]) < 1.1 * expected_deg)
+    assert abs(turn_deg[2]) < 0.1 * expected_deg.min()
+    # The intrinsics' own cx / cy uncertainty enters the rotation's standard deviation.
+    told = calibrate_hand_eye(views, cam, principal_point_std_px=(0.2, 0.3))
+    added_deg = np.sqrt(told.std_rotation_deg**2 - right.std_rotation_deg**2)
+    np.testing.assert_allclose(added_deg[:2], np.degrees([0.3, 0.2]) / cam.K[0, 0], rtol=1e-6)
+    assert added_deg[2] == 0.0
+    np.testing.assert_array_equal(told.std_translation_mm, right.std_translation_mm)
 
 
 def test_refining_intrinsics_keeps_the_solution():
