@@ -46,7 +46,7 @@ from calibration.pipeline import calibrate_session, target_extent_mm
 from scanner.calibration_file import LightPlane
 from scanner.camera import CameraModel
 from scanner.conventions import angle_between_rotations_deg, invert_transform, make_transform
-from scanner.fileio import load_gray_image
+from scanner.fileio import load_gray_image, load_laser_images
 from scanner.session import read_session
 from scanner.targets import ChessboardTarget, CircleGridTarget
 from scanner.virtual_cell.cell import load_cell
@@ -322,8 +322,9 @@ def bench_linelight(root: Path) -> dict[str, float]:
     for i in range(12):
         img = load_gray_image(folder / "calib_picture" / f"calib{i}.jpg")
         obs.append(detect_target(img, target))
-        on = load_gray_image(folder / "light_picture" / f"light{i}.jpg", laser=True)
-        off = load_gray_image(folder / "calib_picture" / f"calib{i}.jpg", laser=True)
+        on, off = load_laser_images(
+            folder / "light_picture" / f"light{i}.jpg", folder / "calib_picture" / f"calib{i}.jpg"
+        )
         prof = extract_stripe(on, mode="precise", background=off)
         laser.append(np.column_stack([prof.u, prof.v]))
     intr = calibrate_intrinsics(obs, (1920, 1080), "default", target)
@@ -345,6 +346,7 @@ def bench_linelight(root: Path) -> dict[str, float]:
         "cloud_rms_mm": float(np.sqrt(np.mean(dist**2))),
         "cloud_max_mm": float(np.abs(dist).max()),
         "plane_rms_mm": res.rms_mm,
+        "worst_frame_mean_mm": max(abs(f["mean_mm"]) for f in res.per_frame),
         "frames": len(res.per_frame),
         "rejected": [r["frame_id"] for r in res.rejected],  # type: ignore[dict-item]
     }

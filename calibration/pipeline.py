@@ -160,12 +160,7 @@ def _progress(iterable: Any, enabled: bool, desc: str, total: int | None = None)
 def _extract(session: Session, frame: Frame) -> NDArray:
     from scanner.scanning.stripe import extract_stripe
 
-    image = session.load_laser_image(frame)
-    background = None
-    if frame.laser_off_image is not None:
-        from scanner.fileio import load_gray_image
-
-        background = load_gray_image(frame.laser_off_image, laser=True)
+    image, background = session.load_laser_pair(frame)
     prof = extract_stripe(image, mode="precise", background=background)
     # Every peak is kept: the light-plane fit keeps, per frame, only the points on the target
     # that lie on one straight line, which drops print edges and reflections.

@@ -38,7 +38,7 @@ from calibration.extrinsics import estimate_pose
 from scanner.calibration_file import Calibration, read_calibration
 from scanner.camera import CameraModel, intersect_rays_with_plane
 from scanner.conventions import invert_transform, transform_points
-from scanner.fileio import InputError, load_gray_image, write_json_atomic
+from scanner.fileio import InputError, write_json_atomic
 from scanner.scanning.stripe import StripeFlag, extract_stripe, orientation_from_calibration
 from scanner.session import Frame, Session, read_session
 from scanner.targets import ConcentricCirclesTarget
@@ -343,12 +343,9 @@ def check_frame(
 ) -> EFMeasurement:
     """Detect the target and measure ``|EF|`` in one row of a check session."""
     target = _load_check_session(session)
-    laser = session.load_laser_image(frame)
+    laser, background = session.load_laser_pair(frame)
     detect_image = session.load_target_image(frame) if frame.target_image is not None else laser
     observation = detect_target(detect_image, target)
-    background = None
-    if frame.laser_off_image is not None:
-        background = load_gray_image(frame.laser_off_image, laser=True)
     return measure_ef(
         laser, observation, target, calibration, frame.base_from_flange, frame.id, background, mode
     )

@@ -35,7 +35,13 @@ from scanner.conventions import (
     rotation_columns,
     transform_to_pose,
 )
-from scanner.fileio import InputError, image_size, load_gray_image, write_text_atomic
+from scanner.fileio import (
+    InputError,
+    image_size,
+    load_gray_image,
+    load_laser_images,
+    write_text_atomic,
+)
 from scanner.targets import TargetSpec, parse_target, target_to_json
 
 __all__ = [
@@ -102,6 +108,13 @@ class Session:
         if frame.laser_image is None:
             raise InputError(self.root / "frames.csv", f"frame {frame.id} has no laser_image")
         return load_gray_image(frame.laser_image, laser=True)
+
+    def load_laser_pair(self, frame: Frame) -> tuple[NDArray, NDArray | None]:
+        """The frame's laser image and its laser-off image (``None`` when it has none), read
+        alike (:func:`scanner.fileio.load_laser_images`)."""
+        if frame.laser_image is None:
+            raise InputError(self.root / "frames.csv", f"frame {frame.id} has no laser_image")
+        return load_laser_images(frame.laser_image, frame.laser_off_image)
 
 
 def _fail(path: Path, reason: str) -> InputError:

@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanner.calibration_file import Calibration, read_calibration
-from scanner.fileio import InputError, atomic_output, load_gray_image
+from scanner.fileio import InputError, atomic_output, load_laser_images
 from scanner.parallel import process_pool
 from scanner.scanning.stripe import (
     MODES,
@@ -257,10 +257,7 @@ def _extract_chunk(job: _ChunkJob) -> tuple[int, int, int]:
     parts: dict[str, list[NDArray]] = {k: [] for k in (*_PROFILE_KEYS, "frame")}
     empty = 0
     for fj in job.frames:
-        image = load_gray_image(fj.laser_image, laser=True)
-        background = None
-        if fj.laser_off_image is not None:
-            background = load_gray_image(fj.laser_off_image, laser=True)
+        image, background = load_laser_images(fj.laser_image, fj.laser_off_image)
         prof = extract_stripe(
             image,
             mode=job.mode,
@@ -312,9 +309,10 @@ def _sweep_stripe_options(
     step = max(1, len(frames) // probes)
     windows, noises = [], []
     for f in frames[::step][:probes]:
-        img = load_gray_image(f.laser_image, laser=True)  # type: ignore[arg-type]
-        if f.laser_off_image is not None and options.use_laser_off:
-            img = cv2.subtract(img, load_gray_image(f.laser_off_image, laser=True))
+        off_path = f.laser_off_image if options.use_laser_off else None
+        img, off = load_laser_images(f.laser_image, off_path)  # type: ignore[arg-type]
+        if off is not None:
+            img = cv2.subtract(img, off)
         work = img if orientation == "rows" else cv2.transpose(img)
         noise = estimate_noise(work)
         noises.append(noise)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -162,7 +163,7 @@ def test_kuka_full_chain_beats_opencv_with_the_same_intrinsics():
 
 @pytest.mark.slow
 @pytest.mark.real_data
-def test_linelight_plane_agrees_with_the_authors():
+def test_linelight_plane_agrees_with_the_authors(monkeypatch):
     root = real_data() / "zhaocongyang_linelight"
     if not root.is_dir():
         pytest.skip(f"real data not found at {root} (set SCANNER_REAL_DATA)")
@@ -172,13 +173,16 @@ def test_linelight_plane_agrees_with_the_authors():
         "bench_calibration", REPO / "benchmarks" / "bench_calibration.py"
     )
     bench = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "bench_calibration", bench)  # its dataclasses need it
     spec.loader.exec_module(bench)
     bench_linelight = bench.bench_linelight
 
     fig = bench_linelight(root.parent)
-    assert fig["normal_deg"] < 0.5
-    # Issue #4: their cloud within 0.5 mm of our plane. Measured: -0.29 mm mean, 0.51 mm RMS
-    # (their own cloud lies up to 0.53 mm off their own plane), our stripe points 0.31 mm RMS.
-    assert abs(fig["cloud_mean_mm"]) < 0.5
-    assert fig["cloud_rms_mm"] < 0.6
-    assert fig["plane_rms_mm"] < 0.4
+    # Issue #4: normal within 0.5 deg of the authors', their cloud within 0.5 mm of our plane.
+    # Measured: 0.22 deg; cloud -0.19 mm mean, 0.42 mm RMS (it scatters 0.235 mm RMS about
+    # its own best plane); our stripe points 0.11 mm RMS, every frame's mean within 0.03 mm.
+    assert fig["normal_deg"] < 0.35
+    assert abs(fig["cloud_mean_mm"]) < 0.3
+    assert fig["cloud_rms_mm"] < 0.5
+    assert fig["plane_rms_mm"] < 0.15
+    assert fig["worst_frame_mean_mm"] < 0.08
