@@ -284,11 +284,12 @@ def robot_draw_study(
     ]
     for k, (method, target, _, _) in enumerate(solvers):
         e = errors[k]
-        better = np.mean(errors[0] < e, axis=0) if k else (np.nan, np.nan)
+        better = np.mean(errors[0] < e, axis=0)
+        paired = f"{better[0]:.2f} | {better[1]:.2f}" if k else "- | -"
         lines.append(
             f"| {method} | {target} | {np.nanmean(e[:, 0]):.5f} "
             f"| {np.sqrt(np.nanmean(e[:, 0] ** 2)):.5f} | {np.nanmean(e[:, 1]):.4f} "
-            f"| {np.sqrt(np.nanmean(e[:, 1] ** 2)):.4f} | {better[0]:.2f} | {better[1]:.2f} |"
+            f"| {np.sqrt(np.nanmean(e[:, 1] ** 2)):.4f} | {paired} |"
         )
     return lines
 
