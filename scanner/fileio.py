@@ -128,9 +128,10 @@ def image_size(path: str | os.PathLike[str]) -> tuple[int, int]:
     return int(img.shape[1]), int(img.shape[0])
 
 
-#: A colour laser frame is read as the mean of its channels once this fraction of its pixels
-#: has one channel, not all, at the maximum: see :func:`laser_gray`.
-CLIPPED_COLOUR_FRACTION = 1e-4
+#: A colour laser frame is read as the mean of its channels once more of its pixels than this
+#: fraction of its longer side have one channel, not all, at the maximum (a line clipped over
+#: a tenth of its length, say): see :func:`laser_gray`.
+CLIPPED_COLOUR_PIXELS_PER_SIDE = 0.1
 
 
 def _read_image(path: str | os.PathLike[str]) -> NDArray:
@@ -163,10 +164,11 @@ def laser_gray(image: NDArray, reduction: str | None = None) -> tuple[NDArray, s
     reduction : {"max", "mean"} or None
         ``"max"``: the brightest channel per pixel (the laser's own channel, whatever its
         colour: best signal to noise while it does not clip). ``"mean"``: the mean of the
-        channels, in the image's dtype. ``None``: ``"mean"`` when more than
-        :data:`CLIPPED_COLOUR_FRACTION` of the pixels have one channel, not all, at the
-        dtype's maximum, else ``"max"``. Give a laser-off frame the reduction of its
-        laser-on frame, so that the subtraction compares like with like.
+        channels, in the image's dtype (it dilutes a dim line: about a third of the laser
+        channel's contrast for a red line). ``None``: ``"mean"`` when more pixels than
+        :data:`CLIPPED_COLOUR_PIXELS_PER_SIDE` times the image's longer side have one
+        channel, not all, at the dtype's maximum, else ``"max"``. Give a laser-off frame the
+        reduction of its laser-on frame, so that the subtraction compares like with like.
 
     Returns
     -------
@@ -184,11 +186,8 @@ def laser_gray(image: NDArray, reduction: str | None = None) -> tuple[NDArray, s
     if reduction is None:
         top = np.iinfo(image.dtype).max
         one_clipped = np.count_nonzero((image.max(axis=2) >= top) & (image.min(axis=2) < top))
-        reduction = (
-            "mean"
-            if one_clipped > CLIPPED_COLOUR_FRACTION * image.shape[0] * image.shape[1]
-            else "max"
-        )
+        clipped = one_clipped > CLIPPED_COLOUR_PIXELS_PER_SIDE * max(image.shape[:2])
+        reduction = "mean" if clipped else "max"
     if reduction == "max":
         return image.max(axis=2), reduction
     total = image.astype(np.uint32).sum(axis=2)
