@@ -19,6 +19,7 @@ from scanner.virtual_cell.render import (
     Scene,
     StripeTruth,
     expose,
+    expose_colour,
     render_radiance,
     render_radiance_coarse_ambient,
     speckle_field,
@@ -155,7 +156,7 @@ def render_scene_image(
         las = las * speckle_field(
             las.shape, cell.laser.speckle_contrast, cell.laser.speckle_size_px, rng
         )
-    return expose(amb + las, im, cell.camera.bit_depth, rng)
+    return _expose(cell, amb, las, rng)
 
 
 def render_image_pair(
@@ -169,13 +170,26 @@ def render_image_pair(
     im = cell.imaging
     laser = Laser.from_cell(cell, scene.world_from_cam)
     amb, las = render_radiance(cell.camera, im, scene, im.white_exposure, laser)
-    target_image = expose(amb, im, cell.camera.bit_depth, rng)
+    target_image = _expose(cell, amb, None, rng)
     if rng is not None and cell.laser.speckle_contrast > 0:
         las = las * speckle_field(
             las.shape, cell.laser.speckle_contrast, cell.laser.speckle_size_px, rng
         )
-    laser_image = expose(amb * np.float32(im.laser_ambient) + las, im, cell.camera.bit_depth, rng)
+    laser_image = _expose(cell, amb * np.float32(im.laser_ambient), las, rng)
     return target_image, laser_image
+
+
+def _expose(
+    cell: CellConfig, ambient: NDArray, laser: NDArray | None, rng: np.random.Generator | None
+) -> NDArray:
+    """The camera's image of the ambient light and the laser: grey, or BGR (colour sensor)."""
+    if cell.camera.colour:
+        las = np.zeros_like(ambient) if laser is None else laser
+        return expose_colour(
+            ambient, las, cell.laser.colour_response, cell.imaging, cell.camera.bit_depth, rng
+        )
+    radiance = ambient if laser is None else ambient + laser
+    return expose(radiance, cell.imaging, cell.camera.bit_depth, rng)
 
 
 def render_target_image(

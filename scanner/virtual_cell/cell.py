@@ -62,6 +62,9 @@ class CameraConfig:
     cy: float
     dist: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
     bit_depth: int = 8
+    colour: bool = False
+    """A colour sensor: a Bayer mosaic (blue at even rows and columns), demosaiced by the
+    camera; images are written as BGR. The laser's colour is ``laser.colour_response``."""
 
     def __post_init__(self) -> None:
         if self.width < 16 or self.height < 16:
@@ -93,6 +96,7 @@ class CameraConfig:
             cy=(self.cy + 0.5) * sy - 0.5,
             dist=self.dist,
             bit_depth=self.bit_depth,
+            colour=self.colour,
         )
 
 
@@ -145,8 +149,16 @@ class LaserConfig:
     reference_distance_mm: float = 500.0
     speckle_contrast: float = 0.25
     speckle_size_px: float = 1.5
+    colour_response: Vec3 = (1.0, 0.1, 0.05)
+    """Response of a colour camera's (red, green, blue) pixels to the laser, relative to
+    their response to the white ambient light: a red laser, seen faintly through the green
+    and blue filters' tails. ``power`` is the red pixels' level. Ignored by a mono camera."""
 
     def __post_init__(self) -> None:
+        if len(self.colour_response) != 3 or min(self.colour_response) < 0:
+            raise ValueError(
+                f"laser.colour_response: expected three values >= 0, got {self.colour_response}"
+            )
         n = np.asarray(self.plane[:3], dtype=float)
         if np.linalg.norm(n) < 1e-9 or self.plane[3] == 0:
             raise ValueError(

@@ -40,6 +40,7 @@ __all__ = [
     "Scene",
     "StripeTruth",
     "expose",
+    "expose_colour",
     "ray_map",
     "render_radiance",
     "stripe_truth",
@@ -414,9 +415,48 @@ def expose(
 
     ``rng=None`` gives the noise-free image (blur and quantisation only).
     """
+    return _sense(_blur(radiance, imaging), imaging, bit_depth, rng)
+
+
+def expose_colour(
+    ambient: NDArray,
+    laser: NDArray,
+    laser_rgb: tuple[float, float, float],
+    imaging: ImagingConfig,
+    bit_depth: int,
+    rng: np.random.Generator | None,
+) -> NDArray:
+    """The colour camera's ``(H, W, 3)`` BGR image of white ambient light and the laser.
+
+    The optics blur the light; each photosite of the Bayer mosaic (blue at even rows and
+    columns, red at odd ones, green between) sees its own filter's share of it, with its own
+    noise and clipping; the camera then interpolates the missing colours (OpenCV's bilinear
+    demosaicing). A red laser strong enough to clip the red pixels leaves the green and
+    blue ones below full scale, as real colour cameras do.
+    """
+    amb = _blur(ambient, imaging)
+    las = _blur(laser, imaging)
+    h, w = amb.shape
+    odd_row = (np.arange(h) % 2 == 1)[:, None]
+    odd_col = (np.arange(w) % 2 == 1)[None, :]
+    red, green, blue = (np.float32(g) for g in laser_rgb)
+    gain = np.where(odd_row & odd_col, red, np.where(~odd_row & ~odd_col, blue, green))
+    raw = _sense(amb + las * gain, imaging, bit_depth, rng)
+    # OpenCV names a Bayer pattern by the second row's second and third pixels: red, green.
+    return cv2.cvtColor(raw, cv2.COLOR_BayerRG2BGR)
+
+
+def _blur(radiance: NDArray, imaging: ImagingConfig) -> NDArray:
     img = np.asarray(radiance, dtype=np.float32)
     if imaging.psf_sigma_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), imaging.psf_sigma_px, borderType=cv2.BORDER_REFLECT)
+    return img
+
+
+def _sense(
+    img: NDArray, imaging: ImagingConfig, bit_depth: int, rng: np.random.Generator | None
+) -> NDArray:
+    """Shot and read noise, black level, quantisation and clipping of blurred radiance."""
     if rng is not None:
         electrons = img * np.float32(imaging.full_well_e)
         shot = np.sqrt(np.clip(electrons, 0, None)) * rng.standard_normal(

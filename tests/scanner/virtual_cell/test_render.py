@@ -14,7 +14,7 @@ from scanner.virtual_cell import render_laser_image, render_target_image
 from scanner.virtual_cell.capture import TABLE_ID, sweep_scene
 from scanner.virtual_cell.cell import CellConfig
 from scanner.virtual_cell.poses import sweep_poses
-from scanner.virtual_cell.render import Scene, expose, ray_map
+from scanner.virtual_cell.render import Scene, expose, expose_colour, ray_map
 from scanner.virtual_cell.scene import PlaneSurface, segment_blocked
 from tests.scanner.virtual_cell.conftest import back_project
 
@@ -214,6 +214,30 @@ def test_noise_and_quantisation_are_honest():
     assert out.std() == pytest.approx(np.sqrt(5025.0) / 10000.0, rel=0.05)
     sat = expose(np.full((4, 4), 3.0, dtype=np.float32), im, 8, None)
     assert np.all(sat == 255)
+
+
+def test_a_colour_camera_sees_white_light_grey_and_a_red_laser_clip_in_red_only():
+    from scanner.virtual_cell.cell import ImagingConfig
+
+    im = ImagingConfig(psf_sigma_px=0.8, black_level_dn=0.0)
+    height, width = 64, 96
+    rows = np.arange(height, dtype=np.float32)[:, None]
+    ambient = np.full((height, width), 0.3, np.float32)
+    line = np.exp(-0.5 * ((rows - 31.7) / 1.5) ** 2) * np.ones((1, width), np.float32)
+    image = expose_colour(ambient, 3.0 * line, (1.0, 0.1, 0.05), im, 8, None)
+    assert image.shape == (height, width, 3) and image.dtype == np.uint8
+    # Away from the line the white light is grey: the three channels agree.
+    far = image[2:12, 2:-2].astype(int)
+    assert np.all(far[..., 0] == far[..., 1]) and np.all(far[..., 1] == far[..., 2])
+    # On the line (BGR): red clips; green and blue, through the filters' tails, do not, and
+    # rise above the ambient by the laser's response in each.
+    core = image[31:33, 4:-4].astype(int)
+    assert np.all(core[..., 2] == 255)
+    assert core[..., 1].max() < 255
+    rise_g = core[..., 1].mean() - far[..., 1].mean()
+    rise_b = core[..., 0].mean() - far[..., 0].mean()
+    assert rise_g == pytest.approx(2.0 * rise_b, rel=0.1)
+    assert 0.08 * 3.0 * 255 < rise_g < 0.1 * 3.0 * 255
 
 
 @pytest.mark.slow
