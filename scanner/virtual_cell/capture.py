@@ -139,7 +139,8 @@ def render_scene_image(
     ambient: float | None = None,
     coarse_ambient: bool = False,
 ) -> NDArray:
-    """Render any scene: 8- or 16-bit grey image ``(H, W)``; ``rng=None`` is noise-free.
+    """Render any scene: 8- or 16-bit image, grey ``(H, W)`` or, from a colour camera, BGR
+    ``(H, W, 3)``; ``rng=None`` is noise-free.
 
     ``coarse_ambient`` (laser images only) shades the dim ambient light every other pixel and
     the laser band fully: about three times faster, for long sweeps.

@@ -11,7 +11,9 @@ smooth over a pixel; the interpolation error is far below 1e-4 px).
 The sensor then applies, in order: vignetting (cos^4-like), laser speckle (multiplicative,
 spatially correlated, on the laser light only), the optical blur (Gaussian PSF), shot noise
 (Gaussian approximation of Poisson with the full-well gain), read noise, the black level and
-quantisation to 8 or 16 bits, clipping at the white level (saturation).
+quantisation to 8 or 16 bits, clipping at the white level (saturation). A colour camera
+(:func:`expose_colour`) samples the blurred light through a Bayer mosaic, each photosite with
+its own noise and clipping, and demosaics.
 
 Radiance is in units of the sensor's full scale: 1.0 is the white level.
 """
