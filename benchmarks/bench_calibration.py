@@ -14,7 +14,7 @@ Prints tables (Markdown) for:
 Usage::
 
     python benchmarks/bench_calibration.py [--cells modern paper] [--work /tmp/bench_calib]
-        [--skip-real] [--skip-cells] [--robot-draws 50]
+        [--skip-real] [--skip-cells] [--robot-draws 50] [--seed 0]
 
 ``--robot-draws``: the hand-eye solvers over fresh draws of the robot's repeatability error
 (see :func:`robot_draw_study`); one session is one draw, too few to rank solvers that are
@@ -96,7 +96,10 @@ def _simulate(cell: str, out: Path, target: str | None, seed: int) -> Any:
 
     if not (out / "truth.json").is_file():
         simulate_cell(cell, out, seed=seed, target=target, sessions=("calibration",), workers=2)
-    return read_truth(out / "truth.json")
+    truth = read_truth(out / "truth.json")
+    if truth.seed != seed:
+        raise SystemExit(f"{out}: simulated with seed {truth.seed}, not {seed}: use another --work")
+    return truth
 
 
 @dataclass
@@ -362,6 +365,9 @@ def main() -> None:
     ap.add_argument("--skip-real", action="store_true")
     ap.add_argument("--skip-cells", action="store_true")
     ap.add_argument(
+        "--seed", type=int, default=0, help="the virtual cells' seed (use a --work per seed)"
+    )
+    ap.add_argument(
         "--robot-draws",
         type=int,
         default=50,
@@ -377,7 +383,7 @@ def main() -> None:
         print("|---|---|---|---|---|---|---|---|---|")
         studies = []
         for cell in args.cells:
-            rows, study = bench_cell(cell, args.work, robot_draws=args.robot_draws)
+            rows, study = bench_cell(cell, args.work, args.seed, args.robot_draws)
             for c, m, na, dd, hr, ht, fa, fd, dt in rows:
                 print(
                     f"| {c} | {m} | {na:.5f} | {dd:+.4f} | {hr:.5f} | {ht:.4f} "
