@@ -183,13 +183,14 @@ def laser_gray(image: NDArray, reduction: str | None = None) -> tuple[NDArray, s
         raise ValueError(f"image: expected (H, W) or (H, W, 3), got shape {image.shape}")
     if reduction not in (None, "max", "mean"):
         raise ValueError(f"reduction: expected 'max', 'mean' or None, got {reduction!r}")
+    brightest = image.max(axis=2) if reduction != "mean" else None
     if reduction is None:
         top = np.iinfo(image.dtype).max
-        one_clipped = np.count_nonzero((image.max(axis=2) >= top) & (image.min(axis=2) < top))
+        one_clipped = np.count_nonzero((brightest >= top) & (image.min(axis=2) < top))
         clipped = one_clipped > CLIPPED_COLOUR_PIXELS_PER_SIDE * max(image.shape[:2])
         reduction = "mean" if clipped else "max"
     if reduction == "max":
-        return image.max(axis=2), reduction
+        return brightest, reduction  # type: ignore[return-value]
     total = image.astype(np.uint32).sum(axis=2)
     return ((total + 1) // 3).astype(image.dtype), reduction
 
