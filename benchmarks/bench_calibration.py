@@ -34,7 +34,6 @@ from typing import Any
 
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from calibration.detect import detect_target
 from calibration.extrinsics import estimate_pose
@@ -45,11 +44,12 @@ from calibration.opencv_adapter import AX_XB_METHODS
 from calibration.pipeline import calibrate_session, target_extent_mm
 from scanner.calibration_file import LightPlane
 from scanner.camera import CameraModel
-from scanner.conventions import angle_between_rotations_deg, invert_transform, make_transform
+from scanner.conventions import angle_between_rotations_deg
 from scanner.fileio import load_gray_image, load_laser_images
 from scanner.session import read_session
 from scanner.targets import ChessboardTarget, CircleGridTarget
 from scanner.virtual_cell.cell import load_cell
+from scanner.virtual_cell.poses import perturb_pose
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -245,7 +245,7 @@ def robot_draw_study(
     error of a good solver is almost all robot error (about 0.001 deg per axis on the modern
     cell): one draw cannot rank two solvers that differ by less. Each draw here keeps the
     images (so the detections, and each view's target pose) and the true stops, and reports
-    new poses ``reported = actual @ inv(error)`` with the cell's repeatability, the same
+    new poses ``reported = actual @ error`` with the cell's repeatability, the same
     errors for the concentric views and the chessboard views at the same stops. Draw 0 is
     the simulated session itself.
 
@@ -264,13 +264,12 @@ def robot_draw_study(
     errors = np.full((len(solvers), draws, 2), np.nan)
     ids = sorted({v.frame_id for v in own_views} | {v.frame_id for v in anchor.views})
     for d in range(draws):
-        reported = {}
-        for i in ids:
-            miss = make_transform(
-                Rotation.from_rotvec(np.radians(robot.repeatability_deg) * rng.standard_normal(3)),
-                robot.repeatability_mm * rng.standard_normal(3),
-            )
-            reported[i] = actual[i] @ invert_transform(miss)
+        # The simulator's own repeatability draw, taken from the true stop: a zero-mean
+        # error is as likely as its inverse, so this is a reported pose for that stop.
+        reported = {
+            i: perturb_pose(actual[i], rng, robot.repeatability_mm, robot.repeatability_deg)
+            for i in ids
+        }
         for k, (method, _, views, camera) in enumerate(solvers):
             if d > 0:  # draw 0: the session as simulated
                 views = [replace(v, base_from_flange=reported[v.frame_id]) for v in views]
