@@ -18,7 +18,7 @@ import sys
 import time
 from pathlib import Path
 
-from scanner.session import Frame, read_session, write_session
+from scanner.formats.session import Frame, read_session, write_session
 
 
 def cut_session(source: Path, out: Path, n_frames: int) -> Path:
@@ -68,7 +68,7 @@ def main() -> None:
     sub = cut_session(cell / "calibration", args.work / f"calibration_{args.frames}", args.frames)
     calib = args.work / "calib.json"
     command = [
-        sys.executable, "-m", "scanner.cli", "calibrate", str(sub), "--out", str(calib),
+        sys.executable, "-m", "scanner.app.cli", "calibrate", str(sub), "--out", str(calib),
         "--report-dir", str(args.work / "reports"), "--quiet",
     ]  # fmt: skip
     t0 = time.perf_counter()

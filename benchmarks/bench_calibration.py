@@ -35,19 +35,19 @@ from typing import Any
 import cv2
 import numpy as np
 
-from calibration.detect import detect_target
+from calibration.detection.detect import detect_target
 from calibration.extrinsics import estimate_pose
 from calibration.hand_eye import PosedView, calibrate_hand_eye, fix_label_flips
 from calibration.intrinsics import calibrate_intrinsics
 from calibration.light_plane import LaserView, calibrate_light_plane, fit_plane
 from calibration.opencv_adapter import AX_XB_METHODS
 from calibration.pipeline import calibrate_session, target_extent_mm
-from scanner.calibration_file import LightPlane
-from scanner.camera import CameraModel
-from scanner.conventions import angle_between_rotations_deg
-from scanner.fileio import load_gray_image, load_laser_images
-from scanner.session import read_session
-from scanner.targets import ChessboardTarget, CircleGridTarget
+from scanner.core.camera import CameraModel
+from scanner.core.conventions import angle_between_rotations_deg
+from scanner.core.images import load_gray_image, load_laser_images
+from scanner.core.targets import ChessboardTarget, CircleGridTarget
+from scanner.formats.calibration_file import LightPlane
+from scanner.formats.session import read_session
 from scanner.virtual_cell.cell import load_cell
 from scanner.virtual_cell.poses import perturb_pose
 
@@ -115,7 +115,7 @@ class Anchor:
 
 def opencv_anchor(session_dir: Path) -> Anchor:
     """OpenCV chessboard calibration at the same poses, five AX=XB solvers, Horus plane fit."""
-    from scanner.scanning.stripe import extract_stripe
+    from scanner.stripe.extract import extract_stripe
 
     session = read_session(session_dir)
     target = session.target
@@ -320,7 +320,7 @@ def bench_linelight(root: Path) -> dict[str, float]:
     folder = root / "zhaocongyang_linelight"
     target = CircleGridTarget((7, 7), 37.5)
     obs, laser = [], []
-    from scanner.scanning.stripe import extract_stripe
+    from scanner.stripe.extract import extract_stripe
 
     for i in range(12):
         img = load_gray_image(folder / "calib_picture" / f"calib{i}.jpg")

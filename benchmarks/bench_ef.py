@@ -15,8 +15,8 @@ from pathlib import Path
 
 from calibration.pipeline import calibrate_session
 from metrology.ef_check import run_ef_check
-from scanner.calibration_file import write_calibration
-from scanner.session import read_session
+from scanner.formats.calibration_file import write_calibration
+from scanner.formats.session import read_session
 from scanner.virtual_cell.simulate import simulate_cell
 
 PAPER_ROW = "| paper (real cell, Table III) | paper | 0.330 | 0.820 | 0.210 | - | - |"

@@ -37,11 +37,11 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from calibration.detect import detect_target
+from calibration.detection.detect import detect_target
 from calibration.intrinsics import IntrinsicsResult, calibrate_intrinsics
-from scanner.camera import CameraModel
-from scanner.conventions import make_transform
-from scanner.targets import ChessboardTarget
+from scanner.core.camera import CameraModel
+from scanner.core.conventions import make_transform
+from scanner.core.targets import ChessboardTarget
 
 log = logging.getLogger("bench_intrinsics")
 
@@ -86,7 +86,7 @@ def spread_poses(cell, n: int, rng: np.random.Generator, max_tilt_deg: float = 4
     concentric target with its marker are inside the image with a 15 px margin, so both
     targets are seen completely at the same poses and reach as far out as they can.
     """
-    from scanner.conventions import transform_points
+    from scanner.core.conventions import transform_points
 
     cam = cell.camera_model()
     wd = cell.capture.working_distance_mm
@@ -123,7 +123,7 @@ def corner_poses(cell, n: int, rng: np.random.Generator, max_tilt_deg: float = 4
     inside the image. The chessboard at the same pose is often cut by the border there, and
     OpenCV's detector then finds nothing: the anchor uses the views it finds.
     """
-    from scanner.conventions import transform_points
+    from scanner.core.conventions import transform_points
 
     cam = cell.camera_model()
     wd = cell.capture.working_distance_mm
@@ -371,9 +371,9 @@ def real_data_dir() -> Path:
 
 def real_rows() -> list[str]:
     """Real data sets against their published or reference results."""
-    from calibration.observations import TargetObservation
-    from scanner.fileio import load_gray_image
-    from scanner.targets import CircleGridTarget
+    from calibration.detection.observations import TargetObservation
+    from scanner.core.images import load_gray_image
+    from scanner.core.targets import CircleGridTarget
 
     root = real_data_dir()
     if not root.is_dir():

@@ -29,8 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from scanner.plc.config import PlcConfig
-from scanner.plc.jobs import JobContext, JobOutcome
+from scanner.app.plc.config import PlcConfig
+from scanner.app.plc.jobs import JobContext, JobOutcome
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -210,7 +210,16 @@ worker = "{worker}"
         )
         env = {**os.environ, "PYTHONPATH": str(REPO)}
         proc = subprocess.Popen(
-            [sys.executable, "-m", "scanner.cli", "serve", "--config", str(config), "--port", "0"],
+            [
+                sys.executable,
+                "-m",
+                "scanner.app.cli",
+                "serve",
+                "--config",
+                str(config),
+                "--port",
+                "0",
+            ],
             cwd=REPO,
             env=env,
             stdout=subprocess.PIPE,

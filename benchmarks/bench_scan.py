@@ -38,17 +38,17 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from scanner.calibration_file import Calibration
+from scanner.formats.calibration_file import Calibration
 from scanner.scanning.stitch import build_cloud
-from scanner.scanning.stripe import (
+from scanner.scanning.triangulate import Triangulator
+from scanner.stripe.extract import (
     StripeFlag,
     StripeOptions,
     auto_half_window,
     estimate_noise,
     extract_stripe,
 )
-from scanner.scanning.synthetic import StripeSegment, TableStepScene, render_stripes
-from scanner.scanning.triangulate import Triangulator
+from scanner.virtual_cell.analytic import StripeSegment, TableStepScene, render_stripes
 
 SHAPE = (768, 1024)
 _FRAMES: list[np.ndarray] = []  # inherited by forked workers, never pickled

@@ -4,7 +4,7 @@
 Prints one table per measurement. Speed is measured on one core (OpenCV limited to one
 thread) against ``frame.max()`` on the same frame in the same run, and against a plain NumPy
 per-line centroid as a baseline. Accuracy is measured on analytic frames
-(:mod:`scanner.scanning.synthetic`) and, when given, on a virtual-cell sweep (``--cell DIR``:
+(:mod:`scanner.virtual_cell.analytic`) and, when given, on a virtual-cell sweep (``--cell DIR``:
 a folder written by ``simulate_cell`` with ``sweep/`` and ``sweep_stripes.npz``).
 
     python benchmarks/bench_stripe.py [--cell DIR] [--frames N]
@@ -25,8 +25,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from scanner.scanning.stripe import StripeOptions, auto_half_window, estimate_noise, extract_stripe
-from scanner.scanning.synthetic import StripeSegment, render_stripes
+from scanner.stripe.extract import StripeOptions, auto_half_window, estimate_noise, extract_stripe
+from scanner.virtual_cell.analytic import StripeSegment, render_stripes
 
 SHAPE = (768, 1024)
 
@@ -105,7 +105,7 @@ def speed_table() -> None:
 
 def step_table() -> None:
     """Where the fast mode's time goes: each step of one call, timed alone on the same frame."""
-    from scanner.scanning import stripe
+    from scanner.stripe import extract as stripe
 
     cv2.setNumThreads(1)
     img, _ = _frame(0)
@@ -190,8 +190,8 @@ def accuracy_table(seeds: int = 8) -> None:
 def cell_table(cell_dir: Path, frames: int) -> None:
     from scipy.spatial import cKDTree
 
-    from scanner.scanning.stripe import StripeFlag
-    from scanner.session import read_session
+    from scanner.formats.session import read_session
+    from scanner.stripe.extract import StripeFlag
     from scanner.virtual_cell.truth import StripeTable
 
     session = read_session(cell_dir / "sweep")

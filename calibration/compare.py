@@ -9,9 +9,9 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from scanner.calibration_file import Calibration
-from scanner.camera import CameraModel
-from scanner.conventions import angle_between_rotations_deg
+from scanner.core.camera import CameraModel
+from scanner.core.conventions import angle_between_rotations_deg
+from scanner.formats.calibration_file import Calibration
 
 __all__ = ["CalibrationErrors", "compare_calibrations", "model_reprojection_error_px"]
 

@@ -22,9 +22,9 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from scanner.calibration_file import LightPlane
-from scanner.camera import CameraModel, intersect_rays_with_plane
-from scanner.conventions import check_points, make_transform, orthonormalize
+from scanner.core.camera import CameraModel, intersect_rays_with_plane
+from scanner.core.conventions import check_points, make_transform, orthonormalize
+from scanner.formats.calibration_file import LightPlane
 
 __all__ = [
     "PoseResult",

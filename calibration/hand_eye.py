@@ -62,8 +62,8 @@ from calibration.opencv_adapter import (
     hand_eye_ax_xb,
     robot_world_hand_eye_ax_zb,
 )
-from scanner.camera import CameraModel
-from scanner.conventions import (
+from scanner.core.camera import CameraModel
+from scanner.core.conventions import (
     angle_between_rotations_deg,
     invert_transform,
     make_transform,

@@ -28,9 +28,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from calibration.conics import fit_line
-from calibration.observations import TargetObservation
-from scanner.conventions import make_transform
+from calibration.detection.conics import fit_line
+from calibration.detection.observations import TargetObservation
+from scanner.core.conventions import make_transform
 
 log = logging.getLogger(__name__)
 

@@ -23,9 +23,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from scanner.calibration_file import LightPlane
-from scanner.camera import CameraModel, intersect_rays_with_plane
-from scanner.conventions import check_points, transform_points
+from scanner.core.camera import CameraModel, intersect_rays_with_plane
+from scanner.core.conventions import check_points, transform_points
+from scanner.formats.calibration_file import LightPlane
 
 __all__ = [
     "LaserView",

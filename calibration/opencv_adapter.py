@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from scanner.conventions import invert_transform, make_transform, orthonormalize
+from scanner.core.conventions import invert_transform, make_transform, orthonormalize
 
 __all__ = [
     "AX_XB_METHODS",

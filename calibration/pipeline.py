@@ -2,9 +2,9 @@
 
 Stages, each reported in the result's ``quality``:
 
-1. detection on every target image (:func:`calibration.detect.detect_target`);
+1. detection on every target image (:func:`calibration.detection.detect.detect_target`);
 2. intrinsics on every target image, posed and unposed (:mod:`calibration.intrinsics`);
-3. stripe extraction on every laser image (:mod:`scanner.scanning.stripe`);
+3. stripe extraction on every laser image (:mod:`scanner.stripe.extract`);
 4. light plane (:mod:`calibration.light_plane`);
 5. extrinsics of every view (:mod:`calibration.extrinsics`);
 6. hand-eye (:mod:`calibration.hand_eye`).
@@ -26,7 +26,8 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from calibration.detect import detect_target
+from calibration.detection.detect import detect_target
+from calibration.detection.observations import TargetObservation
 from calibration.extrinsics import estimate_pose, paper_pose, project_target
 from calibration.hand_eye import (
     HandEyeResult,
@@ -42,11 +43,10 @@ from calibration.light_plane import (
     calibrate_light_plane,
     paper_light_plane,
 )
-from calibration.observations import TargetObservation
-from scanner.calibration_file import Calibration
-from scanner.camera import CameraModel, intersect_rays_with_plane
-from scanner.session import Frame, Session
-from scanner.targets import ChessboardTarget, ConcentricCirclesTarget, TargetSpec
+from scanner.core.camera import CameraModel, intersect_rays_with_plane
+from scanner.core.targets import ChessboardTarget, ConcentricCirclesTarget, TargetSpec
+from scanner.formats.calibration_file import Calibration
+from scanner.formats.session import Frame, Session
 
 __all__ = ["CalibrationResult", "calibrate_session", "stripe_pixel_at", "target_extent_mm"]
 
@@ -158,7 +158,7 @@ def _progress(iterable: Any, enabled: bool, desc: str, total: int | None = None)
 
 
 def _extract(session: Session, frame: Frame) -> NDArray:
-    from scanner.scanning.stripe import extract_stripe
+    from scanner.stripe.extract import extract_stripe
 
     image, background = session.load_laser_pair(frame)
     prof = extract_stripe(image, mode="precise", background=background)
@@ -168,7 +168,7 @@ def _extract(session: Session, frame: Frame) -> NDArray:
 
 
 def _detect_one(args: tuple[str, TargetSpec]) -> TargetObservation:
-    from scanner.fileio import load_gray_image
+    from scanner.core.images import load_gray_image
 
     return detect_target(load_gray_image(args[0]), args[1])
 
@@ -182,7 +182,7 @@ def _detect_all(
         for job in jobs:
             yield _detect_one(job)
         return
-    from scanner.parallel import process_pool
+    from scanner.core.parallel import process_pool
 
     with process_pool(workers) as pool:
         yield from pool.map(_detect_one, jobs, chunksize=2)

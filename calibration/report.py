@@ -1,6 +1,6 @@
 """The HTML calibration report: what was found, how well, and which frames to look at.
 
-One self-contained page (:mod:`scanner.reporting`): the verdict line, every figure with its
+One self-contained page (:mod:`scanner.formats.html`): the verdict line, every figure with its
 uncertainty, detected features drawn over a few images, residuals per image and per pose,
 the light-plane fit and the hand-eye residuals.
 """
@@ -17,7 +17,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from calibration.pipeline import CalibrationResult
-from scanner import reporting as rep
+from scanner.formats import html as rep
 
 __all__ = ["write_calibration_report"]
 

@@ -56,7 +56,7 @@ from numpy.typing import ArrayLike, NDArray
 from metrology.fit import Fit, PlaneFit, SphereFit, fit_plane, fit_sphere
 from metrology.measure import cloud_points
 from metrology.plan import Region, load_dataclass
-from scanner.reporting import STATUS_ERROR, STATUS_FAIL, STATUS_PASS, ToleranceRow
+from scanner.formats.html import STATUS_ERROR, STATUS_FAIL, STATUS_PASS, ToleranceRow
 
 __all__ = [
     "MPE",

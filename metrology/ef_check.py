@@ -32,16 +32,16 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from calibration.conics import fit_conic, fit_line, line_conic_intersections
-from calibration.detect import detect_target
+from calibration.detection.conics import fit_conic, fit_line, line_conic_intersections
+from calibration.detection.detect import detect_target
 from calibration.extrinsics import estimate_pose
-from scanner.calibration_file import Calibration, read_calibration
-from scanner.camera import CameraModel, intersect_rays_with_plane
-from scanner.conventions import invert_transform, transform_points
-from scanner.fileio import InputError, write_json_atomic
-from scanner.scanning.stripe import StripeFlag, extract_stripe, orientation_from_calibration
-from scanner.session import Frame, Session, read_session
-from scanner.targets import ConcentricCirclesTarget
+from scanner.core.camera import CameraModel, intersect_rays_with_plane
+from scanner.core.conventions import invert_transform, transform_points
+from scanner.core.fileio import InputError, write_json_atomic
+from scanner.core.targets import ConcentricCirclesTarget
+from scanner.formats.calibration_file import Calibration, read_calibration
+from scanner.formats.session import Frame, Session, read_session
+from scanner.stripe.extract import StripeFlag, extract_stripe, orientation_from_calibration
 
 __all__ = ["EFCheckResult", "EFMeasurement", "measure_ef", "run_ef_check"]
 

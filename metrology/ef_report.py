@@ -12,7 +12,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-from scanner import reporting as rep
+from scanner.formats import html as rep
 
 if TYPE_CHECKING:
     from metrology.ef_check import EFCheckResult

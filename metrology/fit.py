@@ -44,7 +44,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares, linprog
 
-from scanner.conventions import check_points
+from scanner.core.conventions import check_points
 
 __all__ = [
     "LSQ_SUBSAMPLE",

@@ -36,9 +36,9 @@ from metrology.fit import (
     fit_sphere,
 )
 from metrology.plan import FeatureSpec, MeasurementSpec, Plan, load_plan
-from scanner.conventions import check_points
-from scanner.fileio import InputError
-from scanner.reporting import STATUS_ERROR, STATUS_FAIL, STATUS_NA, STATUS_PASS, ToleranceRow
+from scanner.core.conventions import check_points
+from scanner.core.fileio import InputError
+from scanner.formats.html import STATUS_ERROR, STATUS_FAIL, STATUS_NA, STATUS_PASS, ToleranceRow
 
 __all__ = [
     "CLOUD_SUFFIXES",

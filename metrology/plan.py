@@ -47,7 +47,7 @@ from typing import Literal, TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
-from scanner.config import ConfigError, from_dict, load_toml
+from scanner.core.config import ConfigError, from_dict, load_toml
 
 __all__ = [
     "FEATURE_KINDS",
@@ -362,7 +362,7 @@ def _join_key_path(msg: str) -> str:
 
 
 def load_dataclass(cls: type[T], path: str | os.PathLike[str]) -> T:
-    """Load TOML ``path`` into dataclass ``cls`` (:func:`scanner.config.from_dict`), with
+    """Load TOML ``path`` into dataclass ``cls`` (:func:`scanner.core.config.from_dict`), with
     errors that name the file, the line (found inside the right ``[[array]]`` table) and the
     full key path."""
     p = Path(path)

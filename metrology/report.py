@@ -24,8 +24,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from scanner import reporting as rep
-from scanner.fileio import atomic_output, write_json_atomic
+from scanner.core.fileio import atomic_output, write_json_atomic
+from scanner.formats import html as rep
 
 __all__ = [
     "acceptance_html",
@@ -253,7 +253,7 @@ def provenance_items(provenance: dict[str, Any], cloud_path: str | None) -> list
         items.append(("calibration file", cal))
         items.append(("calibration written", _mtime_utc(Path(cal))))
         try:
-            from scanner.calibration_file import read_calibration
+            from scanner.formats.calibration_file import read_calibration
 
             calib = read_calibration(cal)
             q = calib.quality or {}

@@ -3,7 +3,7 @@
 The tour block runs as written, in order, in a scratch folder (it simulates the paper's cell,
 then calibrates, checks, scans, measures and runs the acceptance test on it). The command
 reference's lines are checked to name real commands and options; ``scanner demo`` itself is
-run by ``tests/scanner/test_demo.py`` and ``scanner history`` by ``tests/scanner/plc``.
+run by ``tests/scanner/app/test_demo.py`` and ``scanner history`` by ``tests/scanner/app/plc``.
 """
 
 from __future__ import annotations
@@ -44,7 +44,7 @@ def tour_commands() -> list[str]:
 def run_scanner(line: str, cwd) -> subprocess.CompletedProcess:
     args = shlex.split(line)[1:]
     return subprocess.run(
-        [sys.executable, "-m", "scanner.cli", *args],
+        [sys.executable, "-m", "scanner.app.cli", *args],
         cwd=cwd,
         capture_output=True,
         text=True,
@@ -61,7 +61,7 @@ def test_readme_set_up_commands_are_the_ci_commands():
 
 
 def test_reference_commands_exist_with_their_options():
-    from scanner.cli import build_parser
+    from scanner.app.cli import build_parser
 
     parser = build_parser()
     sub = next(a for a in parser._actions if a.dest == "command")

@@ -25,16 +25,17 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from scanner.calibration_file import Calibration, read_calibration
-from scanner.fileio import InputError, atomic_output, load_laser_images
-from scanner.parallel import process_pool
-from scanner.scanning.stripe import (
+from scanner.core.fileio import InputError, atomic_output
+from scanner.core.images import load_laser_images
+from scanner.core.parallel import process_pool
+from scanner.formats.calibration_file import Calibration, read_calibration
+from scanner.formats.session import Frame, Session, read_session
+from scanner.stripe.extract import (
     MODES,
     StripeOptions,
     extract_stripe,
     orientation_from_calibration,
 )
-from scanner.session import Frame, Session, read_session
 
 __all__ = [
     "ScanOptions",
@@ -277,7 +278,7 @@ def _extract_chunk(job: _ChunkJob) -> tuple[int, int, int]:
 
 
 def _pool(workers: int) -> Executor:
-    """Spawned worker processes (see :mod:`scanner.parallel` for why never fork)."""
+    """Spawned worker processes (see :mod:`scanner.core.parallel` for why never fork)."""
     return process_pool(workers)
 
 
@@ -301,7 +302,7 @@ def _sweep_stripe_options(
     """
     import cv2
 
-    from scanner.scanning.stripe import auto_half_window, estimate_noise
+    from scanner.stripe.extract import auto_half_window, estimate_noise
 
     stripe = options.stripe
     if (stripe.half_window_px is not None and stripe.noise is not None) or not frames:
@@ -491,7 +492,7 @@ def scan_session(
     InputError
         Bad input, before any extraction (see :func:`check_scan_inputs`).
     """
-    from scanner.scanning.cloud_io import write_cloud
+    from scanner.formats.clouds import write_cloud
     from scanner.scanning.stitch import build_cloud, filter_cloud, refine_sweeps
     from scanner.scanning.triangulate import Triangulator
 
@@ -504,7 +505,7 @@ def scan_session(
     sessions = _as_sessions(session_or_sessions)
     check_scan_inputs(sessions, calibration)
     if out_path is not None:
-        from scanner.scanning.cloud_io import _check_format
+        from scanner.formats.clouds import _check_format
 
         _check_format(Path(out_path))
 

@@ -17,7 +17,7 @@ import open3d as o3d
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from scanner.conventions import angle_between_rotations_deg
+from scanner.core.conventions import angle_between_rotations_deg
 
 __all__ = [
     "SweepCorrection",

@@ -8,7 +8,7 @@ Per frame::
 
 :class:`Triangulator` does the same for many frames at once. Undistortion is the costly step
 (an iterative inversion per point); the triangulator evaluates it once on a pixel grid with
-:meth:`scanner.camera.CameraModel.normalize` and interpolates bilinearly, which keeps the
+:meth:`scanner.core.camera.CameraModel.normalize` and interpolates bilinearly, which keeps the
 error far below the stripe's own (checked in the tests) at a fraction of the time.
 """
 
@@ -20,9 +20,9 @@ import logging
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from scanner.calibration_file import Calibration
-from scanner.camera import CameraModel, intersect_rays_with_plane
-from scanner.conventions import check_points, transform_points
+from scanner.core.camera import CameraModel, intersect_rays_with_plane
+from scanner.core.conventions import check_points, transform_points
+from scanner.formats.calibration_file import Calibration
 
 __all__ = ["Triangulator", "camera_from_calibration", "triangulate_frame"]
 

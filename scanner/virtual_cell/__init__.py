@@ -12,7 +12,7 @@ hand-eye; ``modern``: a 1280x1024 distorted lens, another laser and target) and 
 API
 ---
 ``load_cell(name_or_path) -> CellConfig``
-    A validated cell; ``cell.camera_model()`` is the shared :class:`~scanner.camera.CameraModel`,
+    A validated cell; ``cell.camera_model()`` is the shared :class:`~scanner.core.camera.CameraModel`,
     ``cell.target_spec()`` the printed target, ``cell.laser.normal``/``.d``/``.origin`` the
     light plane and projector origin (camera frame), ``cell.robot.flange_from_cam_matrix()``
     and ``cell.robot.base_from_target()`` the hand-eye and the target on the table.

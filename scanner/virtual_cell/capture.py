@@ -11,8 +11,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from scanner.conventions import check_transform, invert_transform, make_transform
-from scanner.targets import TargetSpec
+from scanner.core.conventions import check_transform, invert_transform, make_transform
+from scanner.core.targets import TargetSpec
 from scanner.virtual_cell.cell import CellConfig, load_cell
 from scanner.virtual_cell.render import (
     Laser,

@@ -18,10 +18,10 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from scanner.camera import CameraModel
-from scanner.config import CONFIG_DIR, load_config, resolve_config
-from scanner.conventions import make_transform, orthonormalize
-from scanner.targets import (
+from scanner.core.camera import CameraModel
+from scanner.core.config import CONFIG_DIR, load_config, resolve_config
+from scanner.core.conventions import make_transform, orthonormalize
+from scanner.core.targets import (
     ChessboardTarget,
     CircleGridTarget,
     ConcentricCirclesTarget,

@@ -10,8 +10,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from scanner.fileio import atomic_output, write_json_atomic, write_text_atomic
-from scanner.targets import (
+from scanner.core.fileio import atomic_output, write_json_atomic, write_text_atomic
+from scanner.core.targets import (
     ChessboardTarget,
     CircleGridTarget,
     ConcentricCirclesTarget,

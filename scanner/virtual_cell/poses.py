@@ -11,8 +11,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from scanner.conventions import invert_transform, make_transform, transform_points
-from scanner.targets import ConcentricCirclesTarget, TargetSpec
+from scanner.core.conventions import invert_transform, make_transform, transform_points
+from scanner.core.targets import ConcentricCirclesTarget, TargetSpec
 from scanner.virtual_cell.cell import CellConfig
 
 __all__ = [

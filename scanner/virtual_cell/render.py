@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from scanner.conventions import invert_transform, transform_points
+from scanner.core.conventions import invert_transform, transform_points
 from scanner.virtual_cell.cell import CameraConfig, CellConfig, ImagingConfig
 from scanner.virtual_cell.scene import (
     Surface,

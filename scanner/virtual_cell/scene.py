@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from scanner.targets import (
+from scanner.core.targets import (
     ChessboardTarget,
     CircleGridTarget,
     ConcentricCirclesTarget,

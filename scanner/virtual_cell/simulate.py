@@ -22,12 +22,12 @@ import numpy as np
 from numpy.typing import NDArray
 from tqdm import tqdm
 
-from scanner.calibration_file import LightPlane, write_calibration
-from scanner.conventions import invert_transform, make_transform
-from scanner.fileio import write_json_atomic, write_text_atomic
-from scanner.parallel import process_pool
-from scanner.session import Frame, write_session
-from scanner.targets import ConcentricCirclesTarget, TargetSpec
+from scanner.core.conventions import invert_transform, make_transform
+from scanner.core.fileio import write_json_atomic, write_text_atomic
+from scanner.core.parallel import process_pool
+from scanner.core.targets import ConcentricCirclesTarget, TargetSpec
+from scanner.formats.calibration_file import LightPlane, write_calibration
+from scanner.formats.session import Frame, write_session
 from scanner.virtual_cell.capture import (
     hand_held_scene,
     posed_target_scene,

@@ -21,10 +21,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from scanner.calibration_file import Calibration, LightPlane
-from scanner.camera import CameraModel
-from scanner.fileio import InputError
-from scanner.targets import TargetSpec, parse_target
+from scanner.core.camera import CameraModel
+from scanner.core.fileio import InputError
+from scanner.core.targets import TargetSpec, parse_target
+from scanner.formats.calibration_file import Calibration, LightPlane
 
 __all__ = [
     "FORMAT",
@@ -208,7 +208,7 @@ class CellTruth:
 
 
 def truth_to_json(truth: CellTruth) -> dict[str, Any]:
-    from scanner.targets import target_to_json
+    from scanner.core.targets import target_to_json
 
     return {
         "format": FORMAT,

@@ -8,8 +8,8 @@ from scipy.spatial.transform import Rotation
 
 from calibration.extrinsics import project_target
 from calibration.hand_eye import PosedView
-from scanner.camera import CameraModel
-from scanner.conventions import invert_transform, make_transform
+from scanner.core.camera import CameraModel
+from scanner.core.conventions import invert_transform, make_transform
 
 
 def camera() -> CameraModel:

@@ -12,8 +12,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from scanner.conventions import make_transform
-from scanner.targets import ChessboardTarget, ConcentricCirclesTarget, OrientationMarker
+from scanner.core.conventions import make_transform
+from scanner.core.targets import ChessboardTarget, ConcentricCirclesTarget, OrientationMarker
 
 WHITE, BLACK = 0.85, 0.08
 

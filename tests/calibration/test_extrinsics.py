@@ -10,9 +10,9 @@ from calibration.extrinsics import (
     project_target,
     rodrigues_align,
 )
-from scanner.calibration_file import LightPlane
-from scanner.camera import CameraModel
-from scanner.conventions import angle_between_rotations_deg, transform_points
+from scanner.core.camera import CameraModel
+from scanner.core.conventions import angle_between_rotations_deg, transform_points
+from scanner.formats.calibration_file import LightPlane
 from tests.calibration import _synthetic as S
 
 

@@ -11,15 +11,15 @@ from calibration.hand_eye import (
     check_robot_motion,
     paper_hand_eye,
 )
-from scanner.camera import CameraModel
-from scanner.conventions import (
+from scanner.core.camera import CameraModel
+from scanner.core.conventions import (
     RotationConvention,
     angle_between_rotations_deg,
     invert_transform,
     make_transform,
     transform_points,
 )
-from scanner.session import Frame, read_session, write_session
+from scanner.formats.session import Frame, read_session, write_session
 from tests.calibration import _synthetic as S
 
 

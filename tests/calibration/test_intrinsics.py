@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from calibration.conics import fit_conic, fit_line, harmonic_conjugate
+from calibration.detection.conics import fit_conic, fit_line, harmonic_conjugate
+from calibration.detection.observations import AxisObservation, RingObservation, TargetObservation
 from calibration.intrinsics import calibrate_intrinsics, paper_intrinsics
-from calibration.observations import AxisObservation, RingObservation, TargetObservation
-from scanner.conventions import make_transform
+from scanner.core.conventions import make_transform
 
 SIZE = (1280, 1024)
 K_TRUE = np.array([[1800.0, 0.0, 652.3], [0.0, 1797.5, 498.7], [0.0, 0.0, 1.0]])

@@ -9,7 +9,7 @@ from calibration.opencv_adapter import (
     hand_eye_ax_xb,
     robot_world_hand_eye_ax_zb,
 )
-from scanner.conventions import angle_between_rotations_deg, invert_transform
+from scanner.core.conventions import angle_between_rotations_deg, invert_transform
 from tests.calibration import _synthetic as S
 
 

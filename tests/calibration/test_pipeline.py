@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 
 from calibration.pipeline import calibrate_session, stripe_pixel_at, target_extent_mm
-from scanner.calibration_file import LightPlane, read_calibration
-from scanner.conventions import angle_between_rotations_deg
-from scanner.session import Frame, Session
-from scanner.targets import ChessboardTarget, CircleGridTarget
+from scanner.core.conventions import angle_between_rotations_deg
+from scanner.core.targets import ChessboardTarget, CircleGridTarget
+from scanner.formats.calibration_file import LightPlane, read_calibration
+from scanner.formats.session import Frame, Session
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -80,7 +80,7 @@ def modern_cell(tmp_path_factory):
 
 @pytest.mark.slow
 def test_virtual_cell_default_calibration_matches_truth(modern_cell):
-    from scanner.session import read_session
+    from scanner.formats.session import read_session
 
     out, truth = modern_cell
     res = calibrate_session(read_session(out / "calibration"), progress=False)
@@ -110,7 +110,7 @@ def test_virtual_cell_default_calibration_matches_truth(modern_cell):
 
 @pytest.mark.slow
 def test_scanner_calibrate_command_writes_file_and_report(modern_cell, tmp_path):
-    from scanner.cli import main
+    from scanner.app.cli import main
 
     out, truth = modern_cell
     calib = tmp_path / "calib.json"
@@ -138,12 +138,12 @@ def test_kuka_full_chain_beats_opencv_with_the_same_intrinsics():
     root = real_data() / "kuka_1"
     if not root.is_dir():
         pytest.skip(f"real data not found at {root} (set SCANNER_REAL_DATA)")
-    from calibration.detect import detect_target
+    from calibration.detection.detect import detect_target
     from calibration.hand_eye import PosedView, calibrate_hand_eye
     from calibration.intrinsics import calibrate_intrinsics
     from calibration.opencv_adapter import AX_XB_METHODS
-    from scanner.camera import CameraModel
-    from scanner.fileio import load_gray_image
+    from scanner.core.camera import CameraModel
+    from scanner.core.images import load_gray_image
 
     poses = np.loadtxt(root / "RobotPosesVec.txt").reshape(-1, 4, 4)
     poses[:, :3, 3] *= 1000.0  # the file is in metres

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from metrology.acceptance import MPE, load_acceptance_spec, run_acceptance
-from scanner.cli import main
-from scanner.config import CONFIG_DIR, ConfigError
+from scanner.app.cli import main
+from scanner.core.config import CONFIG_DIR, ConfigError
 from tests.metrology.test_measure import SPHERES, paper_scene
 
 SPEC = CONFIG_DIR / "plans" / "acceptance_paper.toml"

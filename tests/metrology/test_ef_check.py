@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from metrology.ef_check import run_ef_check
-from scanner.cli import main
+from scanner.app.cli import main
 from scanner.virtual_cell.truth import read_truth
 
 pytestmark = pytest.mark.slow

@@ -9,9 +9,9 @@ import pytest
 
 from metrology.measure import load_cloud, measure_cloud
 from metrology.plan import load_plan
-from scanner.cli import main
-from scanner.config import CONFIG_DIR
-from scanner.fileio import InputError
+from scanner.app.cli import main
+from scanner.core.config import CONFIG_DIR
+from scanner.core.fileio import InputError
 
 PAPER_PLAN = CONFIG_DIR / "plans" / "paper_sweep.toml"
 

@@ -8,7 +8,7 @@ import pytest
 
 from metrology.acceptance import load_acceptance_spec
 from metrology.plan import MeasurementSpec, Region, load_plan
-from scanner.config import CONFIG_DIR, ConfigError
+from scanner.core.config import CONFIG_DIR, ConfigError
 
 PLANS = sorted((CONFIG_DIR / "plans").glob("*_sweep.toml"))
 SPECS = sorted((CONFIG_DIR / "plans").glob("acceptance_*.toml"))
@@ -78,7 +78,7 @@ def test_shipped_acceptance_specs_load(path: Path):
 
 def test_shipped_plans_match_their_cells():
     """The plan's sphere nominals are the cell's sphere centres (the cell file is the truth)."""
-    from scanner.config import load_toml
+    from scanner.core.config import load_toml
 
     for path in PLANS:
         plan = load_plan(path)

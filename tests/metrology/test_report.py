@@ -12,8 +12,8 @@ import pytest
 from metrology import report as mreport
 from metrology.acceptance import run_acceptance
 from metrology.measure import measure_cloud
-from scanner.calibration_file import Calibration, LightPlane, write_calibration
-from scanner.config import CONFIG_DIR
+from scanner.core.config import CONFIG_DIR
+from scanner.formats.calibration_file import Calibration, LightPlane, write_calibration
 from tests.metrology.test_measure import PAPER_PLAN, paper_scene
 
 

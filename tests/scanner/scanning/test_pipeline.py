@@ -1,4 +1,4 @@
-"""scan_session end to end on a rendered table-and-block sweep (scanner.scanning.synthetic)."""
+"""scan_session end to end on a rendered table-and-block sweep (scanner.virtual_cell.analytic)."""
 
 from __future__ import annotations
 
@@ -7,12 +7,12 @@ import json
 import numpy as np
 import pytest
 
-from scanner.calibration_file import read_calibration, write_calibration
-from scanner.fileio import InputError
-from scanner.scanning.cloud_io import read_cloud, read_ply_metadata
+from scanner.core.fileio import InputError
+from scanner.formats.calibration_file import read_calibration, write_calibration
+from scanner.formats.clouds import read_cloud, read_ply_metadata
+from scanner.formats.session import read_session, write_session
 from scanner.scanning.pipeline import ScanOptions, scan_session
-from scanner.scanning.synthetic import TableStepScene, write_table_step_sweep
-from scanner.session import read_session, write_session
+from scanner.virtual_cell.analytic import TableStepScene, write_table_step_sweep
 
 
 @pytest.fixture(scope="module")

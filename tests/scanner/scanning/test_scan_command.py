@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from scanner.calibration_file import write_calibration
-from scanner.cli import main
-from scanner.scanning.cloud_io import read_cloud
-from scanner.scanning.synthetic import TableStepScene, write_table_step_sweep
+from scanner.app.cli import main
+from scanner.formats.calibration_file import write_calibration
+from scanner.formats.clouds import read_cloud
+from scanner.virtual_cell.analytic import TableStepScene, write_table_step_sweep
 
 
 @pytest.fixture(scope="module")
@@ -77,7 +77,7 @@ def test_bad_input_exits_2_with_one_line(sweep, tmp_path, capsys, change, reason
     elif change == "no_poses":
         from dataclasses import replace
 
-        from scanner.session import read_session, write_session
+        from scanner.formats.session import read_session, write_session
 
         s = read_session(session)
         (tmp_path / "s" / "images").mkdir(parents=True)

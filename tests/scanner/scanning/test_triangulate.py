@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from scanner.calibration_file import Calibration, LightPlane
-from scanner.camera import CameraModel
-from scanner.conventions import make_transform, transform_points
+from scanner.core.camera import CameraModel
+from scanner.core.conventions import make_transform, transform_points
+from scanner.formats.calibration_file import Calibration, LightPlane
 from scanner.scanning.triangulate import Triangulator, triangulate_frame
 
 

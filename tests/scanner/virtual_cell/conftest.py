@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from scanner.camera import CameraModel
+from scanner.core.camera import CameraModel
 from scanner.virtual_cell import load_cell
 from scanner.virtual_cell.cell import CellConfig
 

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from scanner.config import ConfigError
-from scanner.conventions import make_transform, transform_points
-from scanner.targets import ChessboardTarget, CircleGridTarget, ConcentricCirclesTarget
+from scanner.core.config import ConfigError
+from scanner.core.conventions import make_transform, transform_points
+from scanner.core.targets import ChessboardTarget, CircleGridTarget, ConcentricCirclesTarget
 from scanner.virtual_cell import cell_names, load_cell, load_target, render_target_image
 
 

@@ -7,8 +7,8 @@ import xml.etree.ElementTree as ET
 
 import pytest
 
-from scanner.cli import main
-from scanner.targets import parse_target
+from scanner.app.cli import main
+from scanner.core.targets import parse_target
 from scanner.virtual_cell import load_cell
 
 

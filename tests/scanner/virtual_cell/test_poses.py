@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from scanner.conventions import angle_between_rotations_deg, invert_transform, transform_points
+from scanner.core.conventions import angle_between_rotations_deg, invert_transform, transform_points
 from scanner.virtual_cell import load_cell
 from scanner.virtual_cell.poses import perturb_pose, sweep_poses
 from scanner.virtual_cell.simulate import plan_cell

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from scanner.conventions import make_transform, transform_points
+from scanner.core.conventions import make_transform, transform_points
 from scanner.virtual_cell import render_laser_image, render_target_image
 from scanner.virtual_cell.capture import TABLE_ID, sweep_scene
 from scanner.virtual_cell.cell import CellConfig

@@ -7,10 +7,10 @@ import csv
 import numpy as np
 import pytest
 
-from scanner.calibration_file import read_calibration
-from scanner.conventions import invert_transform
-from scanner.session import read_session
-from scanner.targets import ChessboardTarget
+from scanner.core.conventions import invert_transform
+from scanner.core.targets import ChessboardTarget
+from scanner.formats.calibration_file import read_calibration
+from scanner.formats.session import read_session
 from scanner.virtual_cell.quick import quick_cell, quick_simulation
 from scanner.virtual_cell.truth import read_truth
 

@@ -1,0 +1,179 @@
+"""Projective geometry of conics and lines in the image, for the concentric-circles target.
+
+Conics are symmetric 3x3 matrices ``C`` with ``x^T C x = 0`` for homogeneous image points
+``x = (u, v, 1)``; lines are 3-vectors ``l`` with ``l . x = 0``. The images of concentric
+circles form a pencil whose member pairs share the image of the common centre as the
+eigenvector of ``C1^-1 C2`` with the non-repeated eigenvalue (the ratio of the squared radii);
+the polar of that centre is the vanishing line of the target plane.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.optimize import least_squares
+
+from scanner.core.conventions import check_points
+
+__all__ = [
+    "conic_from_coefficients",
+    "fit_conic",
+    "fit_line",
+    "harmonic_conjugate",
+    "intersect_lines",
+    "line_conic_intersections",
+    "pencil_center",
+    "sampson_distances",
+]
+
+
+def _normalizer(points: NDArray) -> NDArray:
+    """Hartley normalisation: centroid to the origin, mean distance sqrt(2)."""
+    c = points.mean(axis=0)
+    s = np.sqrt(2.0) / max(float(np.mean(np.linalg.norm(points - c, axis=1))), 1e-12)
+    return np.array([[s, 0.0, -s * c[0]], [0.0, s, -s * c[1]], [0.0, 0.0, 1.0]])
+
+
+def conic_from_coefficients(a: ArrayLike) -> NDArray:
+    """Symmetric matrix of ``a u^2 + b uv + c v^2 + d u + e v + f``, coefficients ``(6,)``."""
+    a, b, c, d, e, f = np.asarray(a, dtype=np.float64)
+    return np.array([[a, b / 2, d / 2], [b / 2, c, e / 2], [d / 2, e / 2, f]])
+
+
+def _coefficients(conic: NDArray) -> NDArray:
+    return np.array(
+        [
+            conic[0, 0],
+            2 * conic[0, 1],
+            conic[1, 1],
+            2 * conic[0, 2],
+            2 * conic[1, 2],
+            conic[2, 2],
+        ]
+    )
+
+
+def sampson_distances(conic: NDArray, points_px: NDArray) -> NDArray:
+    """First-order geometric (Sampson) distance of ``(M, 2)`` points to a conic, pixels, signed."""
+    x = np.column_stack([points_px, np.ones(len(points_px))])
+    cx = x @ conic
+    alg = np.einsum("ij,ij->i", cx, x)
+    grad = 2.0 * cx[:, :2]
+    return alg / np.maximum(np.linalg.norm(grad, axis=1), 1e-300)
+
+
+def fit_conic(points_px: ArrayLike, geometric: bool = True) -> NDArray:
+    """Fit a conic to ``(M, 2)`` image points, M >= 5.
+
+    Algebraic least squares in Hartley-normalised coordinates, then (``geometric``) a
+    refinement minimising the Sampson distances, which is the geometric distance to first
+    order. Returns the conic with unit Frobenius norm.
+    """
+    p = check_points(points_px, min_count=5, name="points_px", dim=2)
+    T = _normalizer(p)
+    q = p @ T[:2, :2].T + T[:2, 2]
+    u, v = q[:, 0], q[:, 1]
+    design = np.column_stack([u * u, u * v, v * v, u, v, np.ones_like(u)])
+    _, _, vt = np.linalg.svd(design, full_matrices=False)
+    cn = conic_from_coefficients(vt[-1])
+    if geometric and len(p) > 6:
+
+        def resid(a: NDArray) -> NDArray:
+            return sampson_distances(conic_from_coefficients(a / np.linalg.norm(a)), q)
+
+        # The Sampson distance alg / |grad| is linear over linear in the coefficients, so its
+        # Jacobian is exact and cheap (finite differences cost six more evaluations per step).
+        # It is homogeneous of degree 0: scaling ``a`` changes nothing, LM copes with that.
+        d_grad_u = np.column_stack([2 * u, v, np.zeros_like(u), np.ones_like(u), 0 * u, 0 * u])
+        d_grad_v = np.column_stack([0 * u, u, 2 * v, 0 * u, np.ones_like(u), 0 * u])
+
+        def jac(a: NDArray) -> NDArray:
+            alg = design @ a
+            gu, gv = d_grad_u @ a, d_grad_v @ a
+            n2 = np.maximum(gu * gu + gv * gv, 1e-300)
+            n = np.sqrt(n2)
+            d_n = (gu[:, None] * d_grad_u + gv[:, None] * d_grad_v) / n[:, None]
+            return design / n[:, None] - (alg / n2)[:, None] * d_n
+
+        a0 = vt[-1]
+        sol = least_squares(resid, a0, jac=jac, method="lm", x_scale="jac")
+        cn = conic_from_coefficients(sol.x / np.linalg.norm(sol.x))
+    conic = T.T @ cn @ T
+    return conic / np.linalg.norm(conic)
+
+
+def fit_line(points_px: ArrayLike) -> NDArray:
+    """Total-least-squares line through ``(M, 2)`` points: ``(a, b, c)``, ``a^2 + b^2 = 1``."""
+    p = check_points(points_px, min_count=2, name="points_px", dim=2)
+    c = p.mean(axis=0)
+    _, _, vt = np.linalg.svd(p - c, full_matrices=False)
+    n = vt[-1]
+    return np.array([n[0], n[1], -float(n @ c)])
+
+
+def intersect_lines(l1: ArrayLike, l2: ArrayLike) -> NDArray:
+    """Homogeneous intersection ``(3,)`` of two lines."""
+    return np.cross(np.asarray(l1, float), np.asarray(l2, float))
+
+
+def line_conic_intersections(line: ArrayLike, conic: NDArray) -> NDArray:
+    """The 0 or 2 real intersections of a line and a conic, ``(k, 2)`` pixels."""
+    ln = np.asarray(line, dtype=np.float64)
+    n = ln[:2] / np.linalg.norm(ln[:2])
+    c0 = -ln[2] / np.linalg.norm(ln[:2]) * n  # foot of the origin on the line
+    d = np.array([-n[1], n[0]])
+    p0 = np.array([c0[0], c0[1], 1.0])
+    dh = np.array([d[0], d[1], 0.0])
+    a = dh @ conic @ dh
+    b = 2 * dh @ conic @ p0
+    c = p0 @ conic @ p0
+    disc = b * b - 4 * a * c
+    if disc < 0 or abs(a) < 1e-300:
+        return np.zeros((0, 2))
+    sq = np.sqrt(disc)
+    # Numerically stable roots.
+    qq = -0.5 * (b + np.copysign(sq, b))
+    ts = [qq / a, c / qq if qq != 0 else -b / (2 * a)]
+    return np.array([c0 + t * d for t in sorted(ts)])
+
+
+def pencil_center(c1: NDArray, c2: NDArray) -> tuple[NDArray, float]:
+    """Image of the common centre of two concentric circles from their image conics.
+
+    Returns
+    -------
+    center : ndarray, shape (3,)
+        Homogeneous, the eigenvector of ``c1^-1 c2`` with the non-repeated eigenvalue.
+    ratio : float
+        ``r1^2 / r2^2`` up to the conics' scale is lost, so the ratio returned is the
+        non-repeated eigenvalue divided by the mean of the other two: for exact images of
+        circles of radii r1, r2 it equals ``r1^2 / r2^2``.
+    """
+    m = np.linalg.solve(c1, c2)
+    w, v = np.linalg.eig(m)
+    w = np.real_if_close(w, tol=1e6)
+    # The repeated pair is the closest pair of eigenvalues.
+    pairs = [(0, 1, 2), (0, 2, 1), (1, 2, 0)]
+    i, j, k = min(pairs, key=lambda t: abs(w[t[0]] - w[t[1]]))
+    center = np.real(v[:, k])
+    ratio = float(np.real(w[k]) / np.real(0.5 * (w[i] + w[j])))
+    return center / (center[2] if abs(center[2]) > 1e-300 else 1.0), ratio
+
+
+def harmonic_conjugate(a: ArrayLike, b: ArrayLike, o: ArrayLike) -> NDArray:
+    """Harmonic conjugate of ``o`` with respect to ``a`` and ``b`` (collinear pixels).
+
+    Returns the homogeneous point ``(3,)`` x with cross ratio (a, b; o, x) = -1; for ``o`` the
+    image of the midpoint of a segment, x is the segment's vanishing point (at infinity, third
+    coordinate 0, when the segment is fronto-parallel).
+    """
+    a, b, o = (np.asarray(x, dtype=np.float64) for x in (a, b, o))
+    d = b - a
+    length = float(np.linalg.norm(d))
+    if length < 1e-12:
+        raise ValueError("harmonic_conjugate: expected distinct points a and b")
+    d = d / length
+    ta, tb, to = 0.0, length, float((o - a) @ d)
+    num = tb * (to - ta) + ta * (to - tb)
+    den = 2 * to - ta - tb
+    return np.array([den * a[0] + num * d[0], den * a[1] + num * d[1], den])

@@ -1,0 +1,74 @@
+"""`scanner measure CLOUD --plan PLAN.toml --out REPORT.json`: run an inspection plan.
+
+Fits the plan's features in the cloud, evaluates its measurements against nominal and
+tolerance, and writes ``REPORT.json`` with ``REPORT.csv`` (the table) and ``REPORT.html`` (the
+report people read) beside it. Prints the summary line. Exit status 0 when the run completed
+(whether or not every measurement passed; ``--strict`` makes a failed measurement exit 1).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+EXIT_OUT_OF_TOLERANCE = 1
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "measure",
+        help="fit the features of an inspection plan in a cloud and report the measurements",
+        description="Run an inspection plan (configs/plans/*.toml) on a point cloud (base frame, "
+        "mm): fit the features, evaluate the measurements, write JSON, CSV and HTML.",
+    )
+    p.add_argument("cloud", type=Path, help="point cloud (.ply, .pcd, .xyz, .npy, ...)")
+    p.add_argument(
+        "--plan",
+        required=True,
+        help="inspection plan: a TOML file, or the name of one in configs/plans/",
+    )
+    p.add_argument(
+        "--out", type=Path, required=True, help="report to write (.json; .csv and .html beside)"
+    )
+    p.add_argument(
+        "--calibration",
+        type=Path,
+        help="calibration file the cloud was scanned with, when the cloud does not record it",
+    )
+    p.add_argument(
+        "--strict", action="store_true", help="exit 1 when a measurement fails or cannot be made"
+    )
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from metrology.measure import load_cloud, measure_cloud
+    from metrology.plan import load_plan
+    from metrology.report import write_measurement_report
+    from scanner.core.config import resolve_config
+    from scanner.core.fileio import InputError
+
+    if args.out.suffix.lower() != ".json":
+        raise InputError(
+            args.out, "--out: expected a .json file name (the .csv and .html go beside it)"
+        )
+    plan_path = resolve_config(args.plan, "plans")
+    plan = load_plan(plan_path)
+    points, provenance = load_cloud(args.cloud)
+    if args.calibration is not None:
+        if not args.calibration.is_file():
+            raise InputError(args.calibration, "calibration file not found")
+        provenance = {**provenance, "calibration": str(args.calibration.resolve())}
+    report = measure_cloud(points, plan, provenance=provenance)
+    report.cloud_path = str(args.cloud)
+    report.plan_path = str(plan_path)
+    paths = write_measurement_report(report, args.out)
+    print(f"measure: {report.summary()}")
+    for m in report.measurements:
+        if m.row.final_status not in ("pass", "n/a"):
+            print(
+                f"  {m.row.final_status.upper()}: {m.row.name}"
+                + (f" ({m.row.note})" if m.row.note else "")
+            )
+    print(f"wrote {paths['json']}, {paths['csv'].name}, {paths['html'].name}")
+    return EXIT_OUT_OF_TOLERANCE if args.strict and not report.passed else 0

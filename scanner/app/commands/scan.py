@@ -1,0 +1,116 @@
+"""`scanner scan SESSION [SESSION...] --calibration CALIB.json --out CLOUD.ply`.
+
+Extracts the laser stripe of every sweep frame, triangulates it with the calibration, stitches
+the sweeps in the robot base frame (mm) and writes the cloud atomically: binary PLY by default,
+PCD or E57 by extension. Bad input is refused with a one-line reason before any work.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "scan",
+        help="turn sweep sessions into a point cloud (base frame, mm)",
+        description="Extract the laser stripe of every frame, triangulate it with the "
+        "calibration, stitch the sweeps by the robot poses and write one cloud "
+        "(.ply binary, .pcd or .e57).",
+    )
+    p.add_argument(
+        "sessions", type=Path, nargs="+", metavar="SESSION", help="sweep session folder(s)"
+    )
+    p.add_argument("--calibration", type=Path, required=True, help="calibration file (JSON)")
+    p.add_argument("--out", type=Path, required=True, help="cloud to write: .ply, .pcd or .e57")
+    p.add_argument(
+        "--mode",
+        choices=("fast", "precise"),
+        default="fast",
+        help="stripe estimator: fast (windowed centre of gravity) or precise (Steger)",
+    )
+    p.add_argument("--voxel-mm", type=float, default=None, help="voxel downsampling size, mm")
+    p.add_argument(
+        "--outliers",
+        type=int,
+        default=0,
+        metavar="K",
+        help="statistical outlier removal with K neighbours (0: off)",
+    )
+    p.add_argument(
+        "--normals-mm", type=float, default=None, help="estimate normals within this radius, mm"
+    )
+    p.add_argument(
+        "--icp",
+        action="store_true",
+        help="refine overlapping sweeps with ICP (reports corrections)",
+    )
+    p.add_argument(
+        "--workdir",
+        type=Path,
+        default=None,
+        help="keep per-frame profiles here so an interrupted run resumes",
+    )
+    p.add_argument("--workers", type=int, default=2, help="extraction processes (default 2)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from scanner.core.fileio import InputError
+    from scanner.formats.calibration_file import read_calibration
+    from scanner.formats.clouds import FORMATS
+    from scanner.formats.session import read_session
+    from scanner.scanning.pipeline import ScanOptions, check_scan_inputs, scan_session
+
+    # Everything that can be refused is refused here, before any image is decoded.
+    if args.out.suffix.lower() not in FORMATS:
+        raise InputError(
+            args.out,
+            f"expected a {', '.join(FORMATS)} file name, got {args.out.suffix or 'none'!r}",
+        )
+    if args.voxel_mm is not None and args.voxel_mm <= 0:
+        raise ValueError(f"--voxel-mm: expected > 0, got {args.voxel_mm}")
+    if args.workers < 1:
+        raise ValueError(f"--workers: expected >= 1, got {args.workers}")
+    calibration = read_calibration(args.calibration)
+    sessions = [read_session(s) for s in args.sessions]
+    check_scan_inputs(sessions, calibration)
+
+    options = ScanOptions(
+        mode=args.mode,
+        voxel_mm=args.voxel_mm,
+        outlier_neighbors=args.outliers,
+        normals_radius_mm=args.normals_mm,
+        icp=args.icp,
+        workers=args.workers,
+    )
+    result = scan_session(
+        sessions,
+        args.calibration,
+        options,
+        out_path=args.out,
+        work_dir=args.workdir,
+        progress=not args.quiet,
+    )
+    rate = result.n_points / result.seconds if result.seconds > 0 else 0.0
+    print(f"wrote {result.out_path}")
+    print(
+        f"  {result.n_points} points from {result.n_frames} frames in {result.n_sweeps} "
+        f"sweep(s), {result.seconds:.1f} s ({rate:,.0f} points/s), mode {options.mode}"
+    )
+    if result.chunks_resumed:
+        print(f"  resumed {result.chunks_resumed} saved chunk(s) from {args.workdir}")
+    if result.frames_without_stripe:
+        print(f"  {result.frames_without_stripe} frame(s) without any stripe point")
+    for c in result.corrections:
+        state = "applied" if c.applied else "not applied"
+        print(
+            f"  ICP sweep {c.sweep}: {c.translation_mm:.3f} mm, {c.rotation_deg:.3f} deg "
+            f"({state}, fitness {c.fitness:.2f})"
+        )
+    for w in result.warnings:
+        print(f"  warning: {w}", file=sys.stderr)
+    return 0

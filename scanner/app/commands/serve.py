@@ -1,0 +1,46 @@
+"""`scanner serve`: the Modbus TCP service a PLC drives (docs/PLC.md).
+
+Runs until SIGTERM or Ctrl-C. ``--print-map`` prints the register map and error codes and
+exits. ``--port 0`` picks a free port; the line ``listening on HOST:PORT`` says which.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import sys
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "serve",
+        help="run the Modbus TCP service for a PLC",
+        description="Run the Modbus TCP service for a PLC until SIGTERM or Ctrl-C.",
+    )
+    p.add_argument("--config", default=None, help="PLC service config (default configs/plc.toml)")
+    p.add_argument("--host", default=None, help="address to listen on (overrides the config)")
+    p.add_argument("--port", type=int, default=None, help="TCP port (overrides the config)")
+    p.add_argument(
+        "--print-map", action="store_true", help="print the register map and error codes, exit"
+    )
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from scanner.app.plc.config import load_plc_config
+    from scanner.app.plc.registers import format_register_map
+    from scanner.app.plc.service import serve
+
+    if args.print_map:
+        print(format_register_map())
+        return 0
+    if args.port is not None and not 0 <= args.port <= 65535:
+        raise ValueError(f"--port: expected 0..65535, got {args.port}")
+    config = load_plc_config(args.config)
+
+    def listening(host: str, port: int) -> None:
+        print(f"scanner serve: listening on {host}:{port}", flush=True)
+
+    asyncio.run(serve(config, host=args.host, port=args.port, on_listening=listening))
+    print("scanner serve: stopped", file=sys.stderr)
+    return 0

@@ -1,0 +1,64 @@
+"""`scanner target`: draw a target spec at 1:1 scale (SVG, PDF or PNG) with the spec beside it."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from scanner.core.fileio import InputError
+from scanner.core.targets import TargetSpec, parse_target
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "target",
+        help="draw a calibration target at 1:1 scale (SVG in mm, or PDF/PNG) with its spec",
+        description=(
+            "Draw the target of a virtual cell (--cell) or of a spec file (--spec: a "
+            "configs/targets TOML, a target JSON or a session.json) at 1:1 scale. The spec is "
+            "written beside the drawing as <stem>.json (the 'target' object of session.json)."
+        ),
+    )
+    p.add_argument("--out", required=True, type=Path, help="output .svg, .pdf or .png")
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--cell", default=None, help="virtual cell name or TOML (default: paper)")
+    src.add_argument("--spec", type=Path, default=None, help="target spec file (.toml or .json)")
+    p.set_defaults(func=run)
+
+
+def _spec_from_file(path: Path) -> TargetSpec:
+    if not path.is_file():
+        raise InputError(path, "target spec file not found")
+    if path.suffix.lower() == ".toml":
+        from scanner.virtual_cell.cell import load_target
+
+        return load_target(path)
+    try:
+        obj = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(path, f"cannot read the spec: {exc}") from None
+    if isinstance(obj, dict) and isinstance(obj.get("target"), dict):
+        obj = obj["target"]
+    try:
+        return parse_target(obj)
+    except ValueError as exc:
+        raise InputError(path, str(exc)) from None
+
+
+def run(args: argparse.Namespace) -> int:
+    from scanner.virtual_cell.capture import printed_target
+    from scanner.virtual_cell.cell import load_cell
+    from scanner.virtual_cell.drawing import save_target_drawing
+    from scanner.virtual_cell.scene import PrintedTarget
+
+    if args.spec is not None:
+        printed = PrintedTarget(_spec_from_file(args.spec))
+    else:
+        printed = printed_target(load_cell(args.cell or "paper"))
+    drawing, spec_path = save_target_drawing(printed, args.out)
+    x0, x1, y0, y1 = printed.card_bounds_mm()
+    print(f"{drawing}: {x1 - x0:.1f} x {y1 - y0:.1f} mm card, print at 100 %; spec in {spec_path}")
+    sys.stdout.flush()
+    return 0

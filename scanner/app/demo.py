@@ -1,0 +1,313 @@
+"""The main job end to end on the virtual cell: simulate, calibrate, check, scan, measure.
+
+A staged pipeline: every stage reads the previous stage's artefacts from the output folder and
+writes its own, so any stage can be rerun alone with the ordinary commands::
+
+    OUT/sessions/{calibration,check,sweep}/   scanner simulate
+    OUT/calibration.json (+ .html)            scanner calibrate
+    OUT/check.json (+ .html)                  scanner check
+    OUT/cloud.ply                             scanner scan
+    OUT/measure.json (+ .csv, .html)          scanner measure
+    OUT/acceptance.json (+ .html)             scanner acceptance
+    OUT/index.html, OUT/summary.json          this module: links everything, accuracy vs truth
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from scanner.core.config import CONFIG_DIR
+from scanner.core.fileio import write_json_atomic
+from scanner.formats import html as rep
+
+__all__ = ["DemoResult", "run_demo"]
+
+logger = logging.getLogger(__name__)
+
+STAGES = ("simulate", "calibrate", "check", "scan", "measure", "acceptance", "report")
+
+
+@dataclass
+class DemoResult:
+    """Paths and key figures of one demo run."""
+
+    out_dir: Path
+    index_html: Path
+    figures: dict[str, Any] = field(default_factory=dict)
+    seconds: dict[str, float] = field(default_factory=dict)
+
+
+def _say(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
+
+
+def _plan_for(cell: str, kind: str) -> Path | None:
+    path = (
+        CONFIG_DIR / "plans" / f"{kind}_{cell}.toml"
+        if kind == "acceptance"
+        else CONFIG_DIR / "plans" / f"{cell}_sweep.toml"
+    )
+    return path if path.is_file() else None
+
+
+def run_demo(
+    cell: str = "modern",
+    out_dir: str | Path | None = None,
+    seed: int = 0,
+    sweep_frames: int | None = None,
+    method: str = "default",
+    reuse: bool = True,
+    progress: bool = True,
+) -> DemoResult:
+    """Run the whole job on the virtual cell and write one HTML report linking every stage.
+
+    Parameters
+    ----------
+    cell : str
+        ``modern`` (distortion, 1280x1024) or ``paper`` (the paper's setup), or a cell file.
+    out_dir : path, optional
+        Default ``reports/demo-<cell>``.
+    seed : int
+        Seed of the simulation.
+    sweep_frames : int, optional
+        Override the number of sweep frames.
+    method : {"default", "paper"}
+        Calibration method.
+    reuse : bool
+        Keep sessions already simulated in ``out_dir`` with the same cell and seed.
+    """
+    from calibration.compare import compare_calibrations
+    from calibration.pipeline import calibrate_session
+    from calibration.report import write_calibration_report
+    from metrology.acceptance import run_acceptance
+    from metrology.ef_check import run_ef_check
+    from metrology.measure import measure_cloud
+    from metrology.report import write_measurement_report
+    from scanner.formats.calibration_file import write_calibration
+    from scanner.formats.session import read_session
+    from scanner.scanning.pipeline import ScanOptions, scan_session
+    from scanner.virtual_cell.cell import load_cell
+    from scanner.virtual_cell.simulate import simulate_cell
+    from scanner.virtual_cell.truth import read_truth
+
+    out = Path(out_dir) if out_dir is not None else Path("reports") / f"demo-{Path(cell).stem}"
+    out.mkdir(parents=True, exist_ok=True)
+    sessions = out / "sessions"
+    result = DemoResult(out_dir=out, index_html=out / "index.html")
+    timings = result.seconds
+
+    def stage(name: str, fn: Callable[[], Any]) -> Any:
+        index = STAGES.index(name) + 1
+        _say(f"[{index}/{len(STAGES)}] {name} ...")
+        t0 = time.perf_counter()
+        value = fn()
+        timings[name] = time.perf_counter() - t0
+        _say(f"[{index}/{len(STAGES)}] {name} done in {timings[name]:.1f} s")
+        return value
+
+    # 1. simulate
+    def simulate() -> Any:
+        truth_path = sessions / "truth.json"
+        if reuse and truth_path.is_file():
+            truth = read_truth(truth_path)
+            frames = sweep_frames or load_cell(cell).sweep.frames
+            if (
+                truth.cell == Path(cell).stem
+                and truth.seed == seed
+                and "sweep" in truth.sessions
+                and len(truth.sessions["sweep"].frames) == frames
+                and all(
+                    (sessions / s / "session.json").is_file()
+                    for s in ("calibration", "check", "sweep")
+                )
+            ):
+                _say(f"    reusing the sessions in {sessions}")
+                return truth
+        return simulate_cell(
+            cell, sessions, seed=seed, sweep_frames=sweep_frames, progress=progress
+        )
+
+    truth = stage("simulate", simulate)
+    true_calibration = truth.calibration()
+
+    # 2. calibrate
+    calib_path = out / "calibration.json"
+
+    def calibrate() -> Any:
+        res = calibrate_session(
+            read_session(sessions / "calibration"), method=method, progress=progress
+        )
+        write_calibration(calib_path, res.calibration)
+        write_calibration_report(res, out, "calibration.html")
+        return res
+
+    calib_result = stage("calibrate", calibrate)
+    errors = compare_calibrations(calib_result.calibration, true_calibration)
+
+    # 3. check
+    check = stage(
+        "check",
+        lambda: run_ef_check(
+            sessions / "check",
+            calib_path,
+            out / "check.json",
+            out / "check.html",
+            progress=progress,
+        ),
+    )
+
+    # 4. scan
+    cloud_path = out / "cloud.ply"
+    scan = stage(
+        "scan",
+        lambda: scan_session(
+            sessions / "sweep",
+            calib_path,
+            ScanOptions(mode="precise", workers=2),
+            cloud_path,
+            progress=progress,
+        ),
+    )
+
+    # 5. measure
+    plan_path = _plan_for(Path(cell).stem, "sweep")
+    measure = None
+    if plan_path is not None:
+
+        def do_measure() -> Any:
+            report = measure_cloud(cloud_path, plan_path)
+            report.cloud_path = str(cloud_path)
+            report.plan_path = str(plan_path)
+            write_measurement_report(report, out / "measure.json")
+            return report
+
+        measure = stage("measure", do_measure)
+
+    # 6. acceptance
+    acc_path = _plan_for(Path(cell).stem, "acceptance")
+    acceptance = None
+    if acc_path is not None:
+
+        def do_acceptance() -> Any:
+            from metrology.acceptance import write_acceptance_report
+
+            res = run_acceptance(cloud_path, acc_path)
+            write_acceptance_report(res, out / "acceptance.json")
+            return res
+
+        acceptance = stage("acceptance", do_acceptance)
+
+    # 7. the index page
+    figures: dict[str, Any] = {
+        "cell": Path(cell).stem,
+        "method": method,
+        "calibration_vs_truth": errors.to_json(),
+        "calibration_rms_px": calib_result.quality.get("rms_px"),
+        "ef_mean_abs_error_mm": check.mean_abs_error_mm,
+        "ef_max_abs_error_mm": check.max_abs_error_mm,
+        "ef_mean_rel_error": check.mean_rel_error,
+        "o_spread_mm": check.o_spread_mm,
+        "cloud_points": scan.n_points,
+        "scan_seconds": scan.seconds,
+    }
+    if measure is not None:
+        figures["measurements"] = {
+            m.row.name: {
+                "actual": m.row.actual,
+                "nominal": m.row.nominal,
+                "status": m.row.final_status,
+            }
+            for m in measure.measurements
+        }
+        figures["measure_passed"] = bool(measure.passed)
+    if acceptance is not None:
+        figures["acceptance_passed"] = bool(acceptance.passed)
+    result.figures = figures
+
+    def report() -> None:
+        write_json_atomic(out / "summary.json", {"figures": figures, "seconds": timings})
+        rep.write_page(result.index_html, _index_html(result, errors, check, measure, acceptance))
+
+    stage("report", report)
+    return result
+
+
+def _link(path: Path, label: str) -> str:
+    return f'<a href="{path.name}">{label}</a>' if path.is_file() else f"{label} (not written)"
+
+
+def _index_html(result: DemoResult, errors: Any, check: Any, measure: Any, acceptance: Any) -> str:
+    out = result.out_dir
+    f = result.figures
+    rows = [
+        rep.ToleranceRow(
+            "EF mean absolute error",
+            nominal=0.0,
+            actual=check.mean_abs_error_mm,
+            lower=None,
+            upper=0.03,
+            unit="mm",
+        ),
+        rep.ToleranceRow(
+            "Spread of O in the base frame",
+            nominal=0.0,
+            actual=check.o_spread_mm,
+            lower=None,
+            upper=0.2,
+            unit="mm",
+        ),
+    ]
+    if measure is not None:
+        rows += [m.row for m in measure.measurements]
+    links = " · ".join(
+        [
+            _link(out / "calibration.html", "calibration report"),
+            _link(out / "check.html", "EF check (Table III)"),
+            _link(out / "measure.html", "measurement report"),
+            _link(out / "acceptance.html", "VDI/VDE 2634-2 acceptance"),
+            _link(out / "cloud.ply", "point cloud (PLY)"),
+            _link(out / "summary.json", "figures (JSON)"),
+        ]
+    )
+    e = errors
+    accuracy = rep.table(
+        ["figure", "error against the virtual cell's truth"],
+        [
+            ["fx (%)", e.fx_rel_pct],
+            ["fy (%)", e.fy_rel_pct],
+            ["cx (px)", e.cx_px],
+            ["cy (px)", e.cy_px],
+            ["camera model over the image, max (px)", e.model_max_px],
+            ["light plane normal (deg)", e.plane_angle_deg],
+            ["light plane d (mm)", e.plane_d_mm],
+            ["hand-eye rotation (deg)", e.hand_eye_rotation_deg],
+            ["hand-eye translation (mm)", e.hand_eye_translation_mm],
+        ],
+        decimals=5,
+    )
+    body = (
+        rep.summary_line(rows, detail=f"virtual cell '{f['cell']}', method {f['method']}")
+        + rep.section("Reports", f"<p>{links}</p>")
+        + rep.section("Key results", rep.tolerance_table(rows, decimals=4))
+        + rep.section(
+            "Calibration accuracy against the truth",
+            accuracy,
+            note="Only a simulator knows the truth: on a real cell the EF check and the spread of O are the figures to watch.",
+        )
+        + rep.section(
+            "Time per stage (s)",
+            rep.key_value_table({k: round(v, 1) for k, v in result.seconds.items()}),
+        )
+    )
+    if acceptance is not None:
+        body += rep.section(
+            "Acceptance",
+            f"<p>{'PASS' if acceptance.passed else 'FAIL'}: see the acceptance report.</p>",
+        )
+    return rep.page("Robot laser-line scanner: demo on the virtual cell", body, subtitle=str(out))

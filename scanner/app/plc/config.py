@@ -1,0 +1,198 @@
+"""Configuration of the PLC service: ``configs/plc.toml`` as validated dataclasses.
+
+Load with :func:`load_plc_config` (which uses :func:`scanner.core.config.load_config`, so errors
+name the file, line and key). Relative paths in the file are resolved against the current
+working directory when the service starts (a systemd unit sets ``WorkingDirectory``).
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+from scanner.core.config import load_config, resolve_config
+
+__all__ = [
+    "CalibrationGate",
+    "CheckTolerances",
+    "JobsConfig",
+    "PlcConfig",
+    "Recipe",
+    "ServerConfig",
+    "SourceConfig",
+    "StorageConfig",
+    "WatchdogConfig",
+    "load_plc_config",
+]
+
+
+@dataclass(frozen=True)
+class ServerConfig:
+    """Where and to whom the Modbus TCP server listens.
+
+    ``allowed_clients`` holds addresses or networks (``"192.168.10.5"``, ``"10.0.0.0/24"``);
+    an empty list allows every address (only sensible on an isolated PLC network).
+    """
+
+    host: str = "127.0.0.1"
+    port: int = 5020
+    allowed_clients: list[str] = field(default_factory=lambda: ["127.0.0.1"])
+    max_connections: int = 8
+    idle_timeout_s: float = 60.0
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.port <= 65535:
+            raise ValueError(f"port: expected 0..65535, got {self.port}")
+        if self.max_connections < 1:
+            raise ValueError(f"max_connections: expected >= 1, got {self.max_connections}")
+        if self.idle_timeout_s <= 0:
+            raise ValueError(f"idle_timeout_s: expected > 0, got {self.idle_timeout_s}")
+        for i, entry in enumerate(self.allowed_clients):
+            try:
+                ipaddress.ip_network(entry, strict=False)
+            except ValueError:
+                raise ValueError(
+                    f"allowed_clients[{i}]: expected an IP address or network, got {entry!r}"
+                ) from None
+
+    def networks(self) -> list[ipaddress.IPv4Network | ipaddress.IPv6Network]:
+        """The allowed clients as networks (a single address is a /32 or /128)."""
+        return [ipaddress.ip_network(e, strict=False) for e in self.allowed_clients]
+
+
+@dataclass(frozen=True)
+class WatchdogConfig:
+    """Limits on a running job; 0 disables a limit."""
+
+    #: Abort the job when register 2 has not changed for this long (s).
+    heartbeat_timeout_s: float = 5.0
+    #: Abort a job running longer than this (s).
+    job_timeout_s: float = 900.0
+    #: On SIGTERM, how long to wait for a running job to stop before recording it interrupted.
+    shutdown_grace_s: float = 5.0
+
+    def __post_init__(self) -> None:
+        for name in ("heartbeat_timeout_s", "job_timeout_s", "shutdown_grace_s"):
+            value = getattr(self, name)
+            if value < 0:
+                raise ValueError(f"{name}: expected >= 0, got {value}")
+
+
+@dataclass(frozen=True)
+class StorageConfig:
+    """Files of the service: job history, job outputs, the current calibration."""
+
+    history_db: str = "var/plc/history.sqlite"
+    work_dir: str = "var/plc/jobs"
+    calibration: str = "var/plc/calibration.json"
+
+
+@dataclass(frozen=True)
+class SourceConfig:
+    """Where sessions come from.
+
+    ``virtual``: each job captures a fresh session from the virtual cell ``cell`` (seeded by
+    ``seed`` plus the job id). ``folder``: capture software drops session folders into
+    ``folder`` (one sub-folder each, ``session.json`` written last); a job takes the newest
+    complete one of the kind it needs.
+    """
+
+    kind: Literal["virtual", "folder"] = "virtual"
+    cell: str = "modern"
+    folder: str = ""
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.kind == "folder" and not self.folder:
+            raise ValueError("folder: expected a folder path when kind = 'folder', got ''")
+
+
+@dataclass(frozen=True)
+class CheckTolerances:
+    """Pass/fail limits of the recalibration check, micrometres."""
+
+    max_mean_abs_um: float = 100.0
+    max_abs_um: float = 250.0
+    max_o_spread_um: float = 500.0
+
+
+@dataclass(frozen=True)
+class CalibrationGate:
+    """Quality gate a new calibration must pass before it replaces the current one."""
+
+    max_intrinsics_rms_px: float = 1.0
+    max_light_plane_rms_um: float = 100.0
+    max_hand_eye_rms_px: float = 2.0
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """A scan job selected by register 3: which inspection plan, optionally which cell."""
+
+    number: int
+    name: str
+    #: Inspection plan: a ``configs/plans`` name or a path.
+    plan: str
+    #: Virtual cell to scan in (virtual source only); empty means ``[source] cell``.
+    cell: str = ""
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.number <= 65535:
+            raise ValueError(f"number: expected 1..65535, got {self.number}")
+
+
+@dataclass(frozen=True)
+class JobsConfig:
+    """Which job runner the service uses: ``"package.module:factory"``, called with the config.
+
+    The default runs the real pipeline; tests and integrators may name their own.
+    """
+
+    runner: str = "scanner.app.plc.jobs:PipelineJobs"
+    #: "process": each job in a worker process of its own (killable, no GIL contention with
+    #: the server); "thread": on a thread of the service (cooperative cancellation only).
+    worker: Literal["process", "thread"] = "process"
+    #: After a cancellation, how long a job process may take to stop before it is killed (s).
+    kill_after_s: float = 2.0
+
+    def __post_init__(self) -> None:
+        if self.kill_after_s < 0:
+            raise ValueError(f"kill_after_s: expected >= 0, got {self.kill_after_s}")
+        module, sep, attr = self.runner.partition(":")
+        if not sep or not module or not attr:
+            raise ValueError(f"runner: expected 'package.module:factory', got {self.runner!r}")
+
+
+@dataclass(frozen=True)
+class PlcConfig:
+    """The whole of ``configs/plc.toml``."""
+
+    server: ServerConfig = field(default_factory=ServerConfig)
+    watchdog: WatchdogConfig = field(default_factory=WatchdogConfig)
+    storage: StorageConfig = field(default_factory=StorageConfig)
+    source: SourceConfig = field(default_factory=SourceConfig)
+    check: CheckTolerances = field(default_factory=CheckTolerances)
+    calibration_gate: CalibrationGate = field(default_factory=CalibrationGate)
+    jobs: JobsConfig = field(default_factory=JobsConfig)
+    recipes: list[Recipe] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        seen: set[int] = set()
+        for i, recipe in enumerate(self.recipes):
+            if recipe.number in seen:
+                raise ValueError(
+                    f"recipes[{i}].number: expected a unique number, got {recipe.number} twice"
+                )
+            seen.add(recipe.number)
+
+    def recipe(self, number: int) -> Recipe | None:
+        """The recipe with this number, or ``None``."""
+        return next((r for r in self.recipes if r.number == number), None)
+
+
+def load_plc_config(path: str | os.PathLike[str] | None = None) -> PlcConfig:
+    """Load ``path`` (default ``configs/plc.toml``) into a :class:`PlcConfig`."""
+    return load_config(PlcConfig, resolve_config(Path(path) if path else "plc"))

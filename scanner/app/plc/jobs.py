@@ -1,0 +1,426 @@
+"""What the PLC service runs: the job interface, session sources and the pipeline jobs.
+
+The service does not know how a check, a scan or a calibration is computed. It calls a
+:class:`JobRunner`: three functions taking a :class:`JobContext` and returning a
+:class:`JobOutcome` or raising :class:`JobError` with an :class:`ErrorCode`. The default
+runner, :class:`PipelineJobs`, captures a session from a :class:`SessionSource` and calls the
+pipeline (imported lazily, so the service starts even while a stage is missing, and a missing
+stage is a recorded job error rather than a crash). Tests inject fake runners.
+
+Jobs run on a worker thread. Cancellation is cooperative: the service sets
+``ctx.cancel`` (watchdog, job timeout, shutdown) and a job calls
+:meth:`JobContext.check_cancelled` between its stages, which raises :class:`JobCancelled`.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import importlib
+import json
+import logging
+import os
+import shutil
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+from scanner.app.plc.config import (
+    CalibrationGate,
+    CheckTolerances,
+    PlcConfig,
+    Recipe,
+    SourceConfig,
+)
+from scanner.app.plc.registers import ErrorCode
+from scanner.core.fileio import InputError, write_json_atomic
+
+__all__ = [
+    "FolderSource",
+    "JobCancelled",
+    "JobContext",
+    "JobError",
+    "JobOutcome",
+    "JobRunner",
+    "PipelineJobs",
+    "SessionSource",
+    "VirtualCellSource",
+    "calibration_gate",
+    "check_passed",
+    "install_calibration",
+    "make_source",
+]
+
+log = logging.getLogger(__name__)
+
+
+class JobError(Exception):
+    """A job that cannot finish, with the error code the PLC reads."""
+
+    def __init__(self, code: ErrorCode, message: str) -> None:
+        self.code = ErrorCode(code)
+        self.message = message
+        super().__init__(f"error {int(code)} ({self.code.name}): {message}")
+
+
+class JobCancelled(Exception):
+    """Raised by :meth:`JobContext.check_cancelled` once the service has cancelled the job."""
+
+
+@dataclass
+class JobContext:
+    """Everything a job gets: who it is, where to write, and the cancellation flag."""
+
+    job_id: int
+    command: int
+    parameter: int
+    #: A fresh folder for this job's session, report and artefacts.
+    work_dir: Path
+    config: PlcConfig
+    cancel: threading.Event = field(default_factory=threading.Event)
+    #: Set by the job when it knows the session it processes (recorded in the history).
+    session_path: Path | None = None
+
+    def check_cancelled(self) -> None:
+        """Raise :class:`JobCancelled` if the service has cancelled this job."""
+        if self.cancel.is_set():
+            raise JobCancelled(f"job {self.job_id} cancelled")
+
+
+@dataclass(frozen=True)
+class JobOutcome:
+    """How a job that ran to its end came out.
+
+    ``passed`` false with ``error`` NONE is a valid result out of tolerance (DONE without
+    PASS); a non-NONE ``error`` makes the PLC see ERROR with that code (e.g. a calibration
+    that failed its quality gate), with the figures still recorded.
+    """
+
+    passed: bool
+    results_um: tuple[float | None, float | None, float | None] = (None, None, None)
+    report_path: Path | None = None
+    artefacts: tuple[Path, ...] = ()
+    error: ErrorCode = ErrorCode.NONE
+    message: str = ""
+
+
+class JobRunner(Protocol):
+    """The three jobs the PLC can start (command 1, 2, 3)."""
+
+    def recalibration_check(self, ctx: JobContext) -> JobOutcome: ...
+
+    def scan(self, ctx: JobContext) -> JobOutcome: ...
+
+    def full_calibration(self, ctx: JobContext) -> JobOutcome: ...
+
+
+# --------------------------------------------------------------------------------------------
+# Session sources
+
+
+class SessionSource(Protocol):
+    """Gives a job the session folder it processes."""
+
+    def acquire(self, kind: str, ctx: JobContext, recipe: Recipe | None = None) -> Path: ...
+
+
+def _session_kind(folder: Path) -> str | None:
+    try:
+        data = json.loads((folder / "session.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    kind = data.get("kind") if isinstance(data, dict) else None
+    return kind if isinstance(kind, str) else None
+
+
+@dataclass(frozen=True)
+class FolderSource:
+    """Session folders dropped by capture software into ``root``; the newest complete one wins.
+
+    A folder is complete once its ``session.json`` exists (the capture writes it last); newest
+    means the latest ``session.json`` modification time. Only sessions of the requested kind
+    are considered.
+    """
+
+    root: Path
+
+    def newest(self, kind: str) -> Path | None:
+        """The newest complete session folder of ``kind``, or ``None``."""
+        if not self.root.is_dir():
+            return None
+        best: tuple[float, str] | None = None
+        best_path: Path | None = None
+        for child in self.root.iterdir():
+            marker = child / "session.json"
+            try:
+                mtime = marker.stat().st_mtime
+            except OSError:
+                continue
+            if _session_kind(child) != kind:
+                continue
+            key = (mtime, child.name)
+            if best is None or key > best:
+                best, best_path = key, child
+        return best_path
+
+    def acquire(self, kind: str, ctx: JobContext, recipe: Recipe | None = None) -> Path:
+        found = self.newest(kind)
+        if found is None:
+            raise JobError(ErrorCode.NO_SESSION, f"no complete {kind!r} session in {self.root}")
+        return found
+
+
+@dataclass(frozen=True)
+class VirtualCellSource:
+    """Each job captures a fresh session from the virtual cell (``scanner.virtual_cell``).
+
+    The seed is ``seed`` plus the job id, so every job sees new noise and the run is
+    reproducible from the history.
+    """
+
+    cell: str = "modern"
+    seed: int = 0
+    workers: int = 1
+
+    def acquire(self, kind: str, ctx: JobContext, recipe: Recipe | None = None) -> Path:
+        try:
+            from scanner.virtual_cell.simulate import simulate_cell
+        except ImportError as exc:
+            raise JobError(ErrorCode.INTERNAL, f"virtual cell not available: {exc}") from None
+        cell = recipe.cell if recipe is not None and recipe.cell else self.cell
+        out = ctx.work_dir / "capture"
+        _call(
+            simulate_cell,
+            cell,
+            out,
+            seed=self.seed + ctx.job_id,
+            sessions=(kind,),
+            workers=self.workers,
+        )
+        session = out / kind
+        if not (session / "session.json").is_file():
+            raise JobError(ErrorCode.NO_SESSION, f"the virtual cell wrote no {kind} session")
+        return session
+
+
+def make_source(config: SourceConfig) -> SessionSource:
+    """The session source the config names."""
+    if config.kind == "folder":
+        return FolderSource(Path(config.folder))
+    return VirtualCellSource(config.cell, config.seed)
+
+
+# --------------------------------------------------------------------------------------------
+# Calibration file management
+
+
+def install_calibration(
+    new_path: Path, current_path: Path, now: dt.datetime | None = None
+) -> Path | None:
+    """Make ``new_path`` the current calibration, keeping the old one with a timestamp.
+
+    Returns
+    -------
+    Path or None
+        Where the previous calibration now is (``calibration-YYYYMMDDTHHMMSS.json`` beside
+        it), or ``None`` when there was none.
+    """
+    now = now or dt.datetime.now(dt.timezone.utc)
+    current_path.parent.mkdir(parents=True, exist_ok=True)
+    kept: Path | None = None
+    if current_path.exists():
+        stamp = now.strftime("%Y%m%dT%H%M%S")
+        kept = current_path.with_name(f"{current_path.stem}-{stamp}{current_path.suffix}")
+        n = 1
+        while kept.exists():
+            kept = current_path.with_name(f"{current_path.stem}-{stamp}-{n}{current_path.suffix}")
+            n += 1
+        shutil.copy2(current_path, kept)
+    # Copy beside the target, then rename: the current file is never half-written.
+    tmp = current_path.with_name(f".{current_path.name}.new")
+    shutil.copyfile(new_path, tmp)
+    os.replace(tmp, current_path)
+    return kept
+
+
+# --------------------------------------------------------------------------------------------
+# The pipeline jobs
+
+
+def _call(func: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+    """Call a pipeline function, turning bad input into the job error the PLC reads."""
+    try:
+        return func(*args, **kwargs)
+    except (JobError, JobCancelled):
+        raise
+    except (InputError, ValueError, FileNotFoundError) as exc:
+        # The pipeline reports bad input (too few frames, target not found...) as ValueError.
+        raise JobError(ErrorCode.BAD_INPUT, " ".join(str(exc).split())) from exc
+
+
+def _stage(module: str, name: str) -> Callable[..., Any]:
+    """A pipeline function, imported now; a missing stage is a recorded job error."""
+    try:
+        return getattr(importlib.import_module(module), name)
+    except (ImportError, AttributeError) as exc:
+        raise JobError(
+            ErrorCode.INTERNAL, f"pipeline stage {module}.{name} not available: {exc}"
+        ) from None
+
+
+def _mm_to_um(value: Any) -> float | None:
+    return None if value is None else float(value) * 1000.0
+
+
+def check_passed(results_um: tuple[float | None, ...], tol: CheckTolerances) -> bool:
+    """Whether the three check figures (µm) are all known and within ``tol``."""
+    limits = (tol.max_mean_abs_um, tol.max_abs_um, tol.max_o_spread_um)
+    return all(v is not None and abs(v) <= lim for v, lim in zip(results_um, limits))
+
+
+class PipelineJobs:
+    """The real jobs: capture a session, then call the pipeline stages.
+
+    Parameters
+    ----------
+    config : PlcConfig
+        Tolerances, recipes, the calibration path.
+    source : SessionSource, optional
+        Where sessions come from; default from ``config.source``.
+    """
+
+    def __init__(self, config: PlcConfig, source: SessionSource | None = None) -> None:
+        self.config = config
+        self.source = source or make_source(config.source)
+
+    @property
+    def calibration_path(self) -> Path:
+        return Path(self.config.storage.calibration)
+
+    def _require_calibration(self) -> Path:
+        path = self.calibration_path
+        if not path.is_file():
+            raise JobError(ErrorCode.NO_CALIBRATION, f"no calibration at {path}")
+        return path
+
+    def recalibration_check(self, ctx: JobContext) -> JobOutcome:
+        """EF check and spread of O on a fresh ``check`` session, against the tolerances."""
+        calibration = self._require_calibration()
+        ctx.session_path = self.source.acquire("check", ctx)
+        ctx.check_cancelled()
+        run_ef_check = _stage("metrology.ef_check", "run_ef_check")
+        out = ctx.work_dir / "ef_check.json"
+        report = ctx.work_dir / "ef_check.html"
+        result = _call(run_ef_check, ctx.session_path, calibration, out, report_path=report)
+        results = (
+            _mm_to_um(getattr(result, "mean_abs_error_mm", None)),
+            _mm_to_um(getattr(result, "max_abs_error_mm", None)),
+            _mm_to_um(getattr(result, "o_spread_mm", None)),
+        )
+        return JobOutcome(
+            passed=check_passed(results, self.config.check),
+            results_um=results,
+            report_path=report if report.is_file() else out,
+            artefacts=(out,),
+        )
+
+    def scan(self, ctx: JobContext) -> JobOutcome:
+        """Scan a sweep session and measure the recipe's plan (recipe number in register 3).
+
+        Results: the first three measured values of the plan, converted to µm (a plan's
+        lengths are in mm).
+        """
+        recipe = self.config.recipe(ctx.parameter)
+        if recipe is None:
+            known = ", ".join(str(r.number) for r in self.config.recipes) or "none"
+            raise JobError(
+                ErrorCode.UNKNOWN_RECIPE,
+                f"expected a recipe number ({known}), got {ctx.parameter}",
+            )
+        calibration = self._require_calibration()
+        from scanner.core.config import resolve_config
+
+        plan = _call(resolve_config, recipe.plan, "plans")
+        ctx.session_path = self.source.acquire("sweep", ctx, recipe)
+        ctx.check_cancelled()
+        scan_session = _stage("scanner.scanning.pipeline", "scan_session")
+        cloud = ctx.work_dir / "cloud.ply"
+        _call(scan_session, ctx.session_path, calibration, out_path=cloud, progress=False)
+        ctx.check_cancelled()
+        measure_cloud = _stage("metrology.measure", "measure_cloud")
+        report = _call(measure_cloud, cloud, plan)
+        report_path = ctx.work_dir / "measurement.json"
+        write_json_atomic(report_path, report.to_json())
+        figures: list[float | None] = [
+            None if r.actual is None else float(r.actual) * 1000.0 for r in report.rows[:3]
+        ]
+        figures += [None] * (3 - len(figures))
+        return JobOutcome(
+            passed=bool(report.passed),
+            results_um=(figures[0], figures[1], figures[2]),
+            report_path=report_path,
+            artefacts=(cloud, report_path),
+            message=report.summary(),
+        )
+
+    def full_calibration(self, ctx: JobContext) -> JobOutcome:
+        """Calibrate from a fresh ``calibration`` session; install it only if it passes the gate.
+
+        Results: intrinsics RMS is in pixels, so only result 1 is set: the light-plane RMS, µm.
+        """
+        ctx.session_path = self.source.acquire("calibration", ctx)
+        ctx.check_cancelled()
+        calibrate_session = _stage("calibration.pipeline", "calibrate_session")
+        from scanner.formats.calibration_file import write_calibration
+        from scanner.formats.session import read_session
+
+        session = _call(read_session, ctx.session_path)
+        result = _call(calibrate_session, session, progress=False)
+        ctx.check_cancelled()
+        new = ctx.work_dir / "calibration.json"
+        write_calibration(new, result.calibration)
+        quality = result.calibration.quality
+        passed, reason, plane_um = calibration_gate(quality, self.config.calibration_gate)
+        results = (plane_um, None, None)
+        if not passed:
+            return JobOutcome(
+                passed=False,
+                results_um=results,
+                artefacts=(new,),
+                error=ErrorCode.QUALITY_GATE,
+                message=reason,
+            )
+        kept = install_calibration(new, self.calibration_path)
+        log.info("calibration installed at %s (previous kept as %s)", self.calibration_path, kept)
+        return JobOutcome(passed=True, results_um=results, report_path=new, artefacts=(new,))
+
+
+def calibration_gate(
+    quality: dict[str, Any], gate: CalibrationGate
+) -> tuple[bool, str, float | None]:
+    """Judge a calibration's quality record; ``(passed, reason, light-plane RMS in µm)``.
+
+    A figure missing from the record fails the gate (it cannot be judged).
+    """
+
+    def figure(section: str, key: str) -> float | None:
+        part = quality.get(section) if isinstance(quality, dict) else None
+        value = part.get(key) if isinstance(part, dict) else None
+        return float(value) if isinstance(value, int | float) else None
+
+    intrinsics_px = figure("intrinsics", "rms_px")
+    plane_mm = figure("light_plane", "rms_mm")
+    hand_eye_px = figure("hand_eye", "rms_px")
+    plane_um = None if plane_mm is None else plane_mm * 1000.0
+    checks = (
+        ("intrinsics RMS", intrinsics_px, gate.max_intrinsics_rms_px, "px"),
+        ("light-plane RMS", plane_um, gate.max_light_plane_rms_um, "um"),
+        ("hand-eye RMS", hand_eye_px, gate.max_hand_eye_rms_px, "px"),
+    )
+    for name, value, limit, unit in checks:
+        if value is None:
+            return False, f"{name} missing from the calibration's quality record", plane_um
+        if value > limit:
+            return False, f"{name} {value:.3g} {unit} over the limit {limit:g} {unit}", plane_um
+    return True, "", plane_um

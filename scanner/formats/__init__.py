@@ -1,0 +1,1 @@
+"""File formats: capture sessions, the calibration file, clouds, HTML building blocks, job-folder layout."""

@@ -1,0 +1,149 @@
+"""Reader and writer of the calibration file (``scan-calibration/1``).
+
+The format is a public contract (``shared/spec/interfaces.md``, section 2)::
+
+    {"format": "scan-calibration/1",
+     "camera": {"width", "height", "K": 3x3, "dist": [k1, k2, p1, p2, k3]},
+     "light_plane": {"normal": [nx, ny, nz], "d": d},     # camera frame, normal . p + d = 0
+     "flange_from_cam": 4x4,
+     "quality": {...free-form...}}
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from scanner.core.conventions import check_transform
+from scanner.core.fileio import InputError, write_json_atomic
+
+__all__ = ["FORMAT", "Calibration", "LightPlane", "read_calibration", "write_calibration"]
+
+FORMAT = "scan-calibration/1"
+
+
+@dataclass(frozen=True)
+class LightPlane:
+    """Laser light plane in the camera frame: ``normal . p_cam + d = 0``, ``|normal| = 1``."""
+
+    normal: NDArray
+    d: float
+
+    def __post_init__(self) -> None:
+        n = np.asarray(self.normal, dtype=np.float64).reshape(-1)
+        if n.shape != (3,) or not np.all(np.isfinite(n)) or not np.isfinite(self.d):
+            raise ValueError(
+                f"light_plane: expected a finite 3-vector normal and d, got {self.normal}, {self.d}"
+            )
+        norm = float(np.linalg.norm(n))
+        if norm < 1e-12:
+            raise ValueError("light_plane.normal: expected a non-zero vector")
+        object.__setattr__(self, "normal", n / norm)
+        object.__setattr__(self, "d", float(self.d) / norm)
+
+    @classmethod
+    def from_coefficients(cls, a: float, b: float, c: float, d: float) -> LightPlane:
+        """From ``a x + b y + c z + d = 0`` (any scale), e.g. the paper's plane."""
+        return cls(np.array([a, b, c], dtype=np.float64), d)
+
+    def signed_distance(self, points_cam: NDArray) -> NDArray:
+        return np.asarray(points_cam, dtype=np.float64) @ self.normal + self.d
+
+
+@dataclass
+class Calibration:
+    """Camera intrinsics, distortion, light plane and hand-eye transform of one sensor."""
+
+    width: int
+    height: int
+    K: NDArray
+    dist: NDArray
+    light_plane: LightPlane
+    flange_from_cam: NDArray
+    quality: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.K = np.asarray(self.K, dtype=np.float64)
+        if self.K.shape != (3, 3) or not np.all(np.isfinite(self.K)):
+            raise ValueError(f"camera.K: expected a finite 3x3 matrix, got shape {self.K.shape}")
+        if self.K[0, 0] <= 0 or self.K[1, 1] <= 0 or not np.allclose(self.K[2], [0, 0, 1]):
+            raise ValueError("camera.K: expected fx, fy > 0 and last row [0, 0, 1]")
+        dist = np.asarray(self.dist, dtype=np.float64).reshape(-1)
+        if dist.size not in (4, 5, 8, 12, 14) or not np.all(np.isfinite(dist)):
+            raise ValueError(
+                f"camera.dist: expected OpenCV's 4, 5, 8, 12 or 14 coefficients, got {dist.size}"
+            )
+        self.dist = dist
+        self.flange_from_cam = check_transform(self.flange_from_cam, "flange_from_cam", tol=1e-5)
+        if self.width <= 0 or self.height <= 0:
+            raise ValueError(
+                f"camera: expected a positive image size, got {self.width}x{self.height}"
+            )
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "format": FORMAT,
+            "camera": {
+                "width": int(self.width),
+                "height": int(self.height),
+                "K": self.K.tolist(),
+                "dist": self.dist.tolist(),
+            },
+            "light_plane": {
+                "normal": self.light_plane.normal.tolist(),
+                "d": float(self.light_plane.d),
+            },
+            "flange_from_cam": self.flange_from_cam.tolist(),
+            "quality": self.quality,
+        }
+
+
+def write_calibration(path: str | os.PathLike[str], calibration: Calibration) -> None:
+    """Write the calibration file atomically (temporary file, then rename)."""
+    write_json_atomic(path, calibration.to_json())
+
+
+def read_calibration(path: str | os.PathLike[str]) -> Calibration:
+    """Read and validate a calibration file.
+
+    Raises
+    ------
+    InputError
+        ``"<path>: <reason>"`` for a missing file, invalid JSON, wrong format or bad values.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(p, "calibration file not found")
+    try:
+        obj = json.loads(p.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(p, f"cannot read: {exc}") from None
+    except json.JSONDecodeError as exc:
+        raise InputError(p, f"not valid JSON (line {exc.lineno}: {exc.msg})") from None
+    if not isinstance(obj, dict) or obj.get("format") != FORMAT:
+        got = obj.get("format") if isinstance(obj, dict) else type(obj).__name__
+        raise InputError(p, f"format: expected {FORMAT!r}, got {got!r}")
+    try:
+        cam = obj["camera"]
+        plane = obj["light_plane"]
+        return Calibration(
+            width=int(cam["width"]),
+            height=int(cam["height"]),
+            K=np.asarray(cam["K"], dtype=np.float64),
+            dist=np.asarray(cam["dist"], dtype=np.float64),
+            light_plane=LightPlane(
+                np.asarray(plane["normal"], dtype=np.float64), float(plane["d"])
+            ),
+            flange_from_cam=np.asarray(obj["flange_from_cam"], dtype=np.float64),
+            quality=dict(obj.get("quality") or {}),
+        )
+    except KeyError as exc:
+        raise InputError(p, f"missing key {exc.args[0]!r}") from None
+    except (TypeError, ValueError) as exc:
+        raise InputError(p, str(exc)) from None

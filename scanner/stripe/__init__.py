@@ -1,0 +1,1 @@
+"""Laser stripe extraction: sub-pixel profiles from frames."""

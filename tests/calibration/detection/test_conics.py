@@ -1,0 +1,87 @@
+import numpy as np
+import pytest
+
+from calibration.detection.conics import (
+    fit_conic,
+    fit_line,
+    harmonic_conjugate,
+    line_conic_intersections,
+    pencil_center,
+    sampson_distances,
+)
+
+
+def _homography() -> np.ndarray:
+    # A plane seen obliquely: K [r1 r2 t].
+    K = np.array([[1500.0, 0, 640], [0, 1490.0, 512], [0, 0, 1]])
+    a = np.radians(35)
+    R = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    t = np.array([10.0, -20.0, 500.0])
+    return K @ np.column_stack([R[:, 0], R[:, 1], t])
+
+
+def _circle_image(H: np.ndarray, r: float, n: int = 200) -> tuple[np.ndarray, np.ndarray]:
+    th = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    x = H @ np.vstack([r * np.cos(th), r * np.sin(th), np.ones(n)])
+    pts = (x[:2] / x[2]).T
+    Hi = np.linalg.inv(H)
+    C = Hi.T @ np.diag([1.0, 1.0, -(r**2)]) @ Hi
+    return pts, C / np.linalg.norm(C)
+
+
+def test_fit_conic_recovers_projected_circle():
+    rng = np.random.default_rng(0)
+    pts, C_true = _circle_image(_homography(), 60.0)
+    C = fit_conic(pts + rng.normal(0, 0.02, pts.shape))
+    C *= np.sign(C[0, 0]) * np.sign(C_true[0, 0])
+    # Sampson distances of the exact points to the fitted conic: at the noise level.
+    assert np.sqrt(np.mean(sampson_distances(C, pts) ** 2)) < 0.01
+
+
+def test_fit_conic_refuses_too_few_points():
+    with pytest.raises(ValueError, match="N >= 5"):
+        fit_conic(np.zeros((4, 2)))
+
+
+def test_pencil_center_is_image_of_circle_centre_not_ellipse_centre():
+    H = _homography()
+    _, c1 = _circle_image(H, 30.0)
+    _, c2 = _circle_image(H, 80.0)
+    centre, ratio = pencil_center(c1, c2)
+    o = H @ [0, 0, 1.0]
+    assert np.allclose(centre[:2], o[:2] / o[2], atol=1e-6)
+    assert ratio == pytest.approx((80.0 / 30.0) ** 2, rel=1e-9)
+    # The ellipse centre is elsewhere under perspective (why it is never used).
+    ellipse_centre = -np.linalg.solve(c2[:2, :2], c2[:2, 2])
+    assert np.linalg.norm(ellipse_centre - o[:2] / o[2]) > 1.0
+
+
+def test_harmonic_conjugate_gives_vanishing_point():
+    H = _homography()
+
+    def img(p):
+        x = H @ [p[0], p[1], 1.0]
+        return x[:2] / x[2]
+
+    a, b, o = img((80, 0)), img((-80, 0)), img((0, 0))
+    vp = harmonic_conjugate(a, b, o)
+    expected = H @ [1.0, 0.0, 0.0]  # the x direction's point at infinity
+    # Same homogeneous point (here at infinity: the x diameter is fronto-parallel).
+    cross = np.cross(vp / np.linalg.norm(vp), expected / np.linalg.norm(expected))
+    assert np.linalg.norm(cross) < 1e-9
+
+
+def test_line_conic_intersections_and_line_fit():
+    H = _homography()
+    _pts, C = _circle_image(H, 50.0)
+
+    def img(p):
+        x = H @ [p[0], p[1], 1.0]
+        return x[:2] / x[2]
+
+    line = fit_line(np.array([img((s, 0.0)) for s in np.linspace(-70, 70, 15)]))
+    got = line_conic_intersections(line, C)
+    assert got.shape == (2, 2)
+    want = np.array([img((50.0, 0.0)), img((-50.0, 0.0))])
+    d = np.linalg.norm(got[:, None] - want[None], axis=2).min(axis=1)
+    assert np.all(d < 1e-6)

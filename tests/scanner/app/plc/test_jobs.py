@@ -1,0 +1,201 @@
+from __future__ import annotations
+
+import datetime as dt
+import json
+import os
+import threading
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+
+from scanner.app.plc.config import (
+    CalibrationGate,
+    CheckTolerances,
+    PlcConfig,
+    Recipe,
+    StorageConfig,
+)
+from scanner.app.plc.jobs import (
+    FolderSource,
+    JobCancelled,
+    JobContext,
+    JobError,
+    PipelineJobs,
+    calibration_gate,
+    check_passed,
+    install_calibration,
+)
+from scanner.app.plc.registers import ErrorCode
+
+
+def _session(root: Path, name: str, kind: str, mtime: float | None) -> Path:
+    folder = root / name
+    folder.mkdir(parents=True)
+    if mtime is not None:
+        marker = folder / "session.json"
+        marker.write_text(json.dumps({"format": "scan-session/1", "kind": kind}), "utf-8")
+        os.utime(marker, (mtime, mtime))
+    return folder
+
+
+def _ctx(tmp: Path, config: PlcConfig, parameter: int = 0) -> JobContext:
+    return JobContext(1, 1, parameter, tmp / "job", config)
+
+
+def test_folder_source_takes_the_newest_complete_session_of_the_kind(tmp_path: Path):
+    root = tmp_path / "drop"
+    _session(root, "a", "check", 1000.0)
+    newest = _session(root, "b", "check", 2000.0)
+    _session(root, "c", "check", None)  # being written: no session.json yet
+    _session(root, "d", "sweep", 3000.0)
+    source = FolderSource(root)
+    assert source.newest("check") == newest
+    ctx = _ctx(tmp_path, PlcConfig())
+    with pytest.raises(JobError) as err:
+        source.acquire("calibration", ctx)
+    assert err.value.code == ErrorCode.NO_SESSION
+    assert FolderSource(tmp_path / "absent").newest("check") is None
+
+
+def test_install_calibration_keeps_the_old_one(tmp_path: Path):
+    current = tmp_path / "cal" / "calibration.json"
+    first = tmp_path / "first.json"
+    first.write_text("1", "utf-8")
+    assert install_calibration(first, current) is None
+    second = tmp_path / "second.json"
+    second.write_text("2", "utf-8")
+    now = dt.datetime(2026, 1, 2, 3, 4, 5, tzinfo=dt.timezone.utc)
+    kept = install_calibration(second, current, now=now)
+    assert kept == current.with_name("calibration-20260102T030405.json")
+    assert kept.read_text("utf-8") == "1"
+    assert current.read_text("utf-8") == "2"
+    third = tmp_path / "third.json"
+    third.write_text("3", "utf-8")
+    assert install_calibration(third, current, now=now).name == "calibration-20260102T030405-1.json"
+
+
+def test_check_passes_only_within_every_tolerance():
+    tol = CheckTolerances(max_mean_abs_um=10, max_abs_um=20, max_o_spread_um=30)
+    assert check_passed((10.0, -20.0, 30.0), tol)
+    assert not check_passed((10.1, 0.0, 0.0), tol)
+    assert not check_passed((1.0, 1.0, None), tol)
+
+
+def test_pipeline_jobs_say_why_they_cannot_start(tmp_path: Path):
+    config = PlcConfig(
+        storage=StorageConfig(calibration=str(tmp_path / "none.json")),
+        recipes=[Recipe(number=1, name="a", plan="p")],
+    )
+    jobs = PipelineJobs(config, source=FolderSource(tmp_path))
+    with pytest.raises(JobError) as err:
+        jobs.scan(_ctx(tmp_path, config, parameter=5))
+    assert err.value.code == ErrorCode.UNKNOWN_RECIPE
+    with pytest.raises(JobError) as err:
+        jobs.recalibration_check(_ctx(tmp_path, config))
+    assert err.value.code == ErrorCode.NO_CALIBRATION
+    with pytest.raises(JobError) as err:
+        jobs.full_calibration(_ctx(tmp_path, config))
+    assert err.value.code == ErrorCode.NO_SESSION
+
+
+def test_cancellation_is_raised_at_the_next_check(tmp_path: Path):
+    ctx = JobContext(1, 1, 0, tmp_path, PlcConfig(), cancel=threading.Event())
+    ctx.check_cancelled()
+    ctx.cancel.set()
+    with pytest.raises(JobCancelled):
+        ctx.check_cancelled()
+
+
+def test_calibration_gate_judges_the_quality_record():
+    gate = CalibrationGate(
+        max_intrinsics_rms_px=0.5, max_light_plane_rms_um=50, max_hand_eye_rms_px=1
+    )
+    good = {
+        "intrinsics": {"rms_px": 0.2},
+        "light_plane": {"rms_mm": 0.012},
+        "hand_eye": {"rms_px": 0.4},
+    }
+    assert calibration_gate(good, gate) == (True, "", pytest.approx(12.0))
+    bad = {**good, "light_plane": {"rms_mm": 0.08}}
+    passed, reason, plane_um = calibration_gate(bad, gate)
+    assert not passed and "light-plane RMS 80 um over the limit 50 um" in reason
+    assert plane_um == pytest.approx(80.0)
+    passed, reason, _ = calibration_gate({"intrinsics": {"rms_px": 0.2}}, gate)
+    assert not passed and "missing" in reason
+
+
+def _fake_pipeline(monkeypatch: pytest.MonkeyPatch, quality: dict, rows: list) -> None:
+    import scanner.app.plc.jobs as jobs_module
+    import scanner.formats.calibration_file
+    import scanner.formats.session
+
+    def write_calibration(path: Path, calibration: object) -> None:
+        Path(path).write_text("new", "utf-8")
+
+    def scan_session(session: Path, calibration: Path, out_path: Path, progress: bool) -> None:
+        Path(out_path).write_text("ply", "utf-8")
+
+    report = SimpleNamespace(rows=rows, passed=True, to_json=lambda: {}, summary=lambda: "PASS")
+    stages = {
+        "calibrate_session": lambda session, progress: SimpleNamespace(
+            calibration=SimpleNamespace(quality=quality)
+        ),
+        "scan_session": scan_session,
+        "measure_cloud": lambda cloud, plan: report,
+    }
+    monkeypatch.setattr(jobs_module, "_stage", lambda module, name: stages[name])
+    monkeypatch.setattr(scanner.formats.calibration_file, "write_calibration", write_calibration)
+    monkeypatch.setattr(scanner.formats.session, "read_session", lambda path: path)
+
+
+GOOD = {"intrinsics": {"rms_px": 0.2}, "light_plane": {"rms_mm": 0.01}, "hand_eye": {"rms_px": 0.3}}
+
+
+@pytest.mark.parametrize("light_plane_mm", [0.01, 0.5])
+def test_full_calibration_replaces_the_current_one_only_when_it_passes(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, light_plane_mm: float
+):
+    quality = {**GOOD, "light_plane": {"rms_mm": light_plane_mm}}
+    _fake_pipeline(monkeypatch, quality, [])
+    current = tmp_path / "cal" / "calibration.json"
+    current.parent.mkdir()
+    current.write_text("old", "utf-8")
+    _session(tmp_path / "drop", "s1", "calibration", 1000.0)
+    config = PlcConfig(storage=StorageConfig(calibration=str(current)))
+    jobs = PipelineJobs(config, source=FolderSource(tmp_path / "drop"))
+    ctx = _ctx(tmp_path, config)
+    ctx.work_dir.mkdir()
+    outcome = jobs.full_calibration(ctx)
+    assert outcome.results_um[0] == pytest.approx(light_plane_mm * 1000)
+    kept = sorted(current.parent.glob("calibration-*.json"))
+    if light_plane_mm < 0.1:
+        assert outcome.passed and outcome.error == ErrorCode.NONE
+        assert current.read_text("utf-8") == "new"
+        assert [k.read_text("utf-8") for k in kept] == ["old"]
+    else:
+        assert not outcome.passed and outcome.error == ErrorCode.QUALITY_GATE
+        assert "light-plane RMS" in outcome.message
+        assert current.read_text("utf-8") == "old" and kept == []
+
+
+def test_scan_job_reports_the_plans_first_figures_in_micrometres(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+):
+    rows = [SimpleNamespace(actual=25.0123), SimpleNamespace(actual=None)]
+    _fake_pipeline(monkeypatch, GOOD, rows)
+    current = tmp_path / "calibration.json"
+    current.write_text("{}", "utf-8")
+    _session(tmp_path / "drop", "s1", "sweep", 1000.0)
+    config = PlcConfig(
+        storage=StorageConfig(calibration=str(current)),
+        recipes=[Recipe(number=3, name="r", plan="modern_sweep")],
+    )
+    jobs = PipelineJobs(config, source=FolderSource(tmp_path / "drop"))
+    ctx = _ctx(tmp_path, config, parameter=3)
+    ctx.work_dir.mkdir()
+    outcome = jobs.scan(ctx)
+    assert outcome.passed
+    assert outcome.results_um == (pytest.approx(25012.3), None, None)
+    assert ctx.session_path == tmp_path / "drop" / "s1"
+    assert outcome.report_path is not None and outcome.report_path.is_file()

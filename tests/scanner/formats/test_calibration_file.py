@@ -1,0 +1,111 @@
+import json
+
+import numpy as np
+import pytest
+
+from scanner.core.conventions import make_transform, orthonormalize
+from scanner.core.fileio import InputError
+from scanner.formats.calibration_file import (
+    Calibration,
+    LightPlane,
+    read_calibration,
+    write_calibration,
+)
+
+PAPER_T_EC = np.array(
+    [
+        [0.7234, 0.5888, 0.3605, -338.0554],
+        [-0.1897, -0.3326, 0.9238, -433.5400],
+        [0.6639, -0.7367, -0.1289, -34.8966],
+    ]
+)
+
+
+def paper_calibration() -> Calibration:
+    return Calibration(
+        width=1024,
+        height=768,
+        K=np.array([[1939.77, 0, 574.69], [0, 1937.73, 475.58], [0, 0, 1]]),
+        dist=np.zeros(5),
+        light_plane=LightPlane.from_coefficients(4.2678, 9.3291, -0.8124, 1000.0),
+        flange_from_cam=make_transform(orthonormalize(PAPER_T_EC[:, :3]), PAPER_T_EC[:, 3]),
+        quality={"method": "paper"},
+    )
+
+
+def test_light_plane_is_normalised_without_moving_it():
+    plane = LightPlane.from_coefficients(4.2678, 9.3291, -0.8124, 1000.0)
+    assert np.linalg.norm(plane.normal) == pytest.approx(1.0)
+    # A point on the original plane stays on the normalised one.
+    p = np.array([0.0, 0.0, 1000.0 / 0.8124])
+    assert plane.signed_distance(p[None])[0] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_calibration_file_round_trips(tmp_path):
+    calib = paper_calibration()
+    write_calibration(tmp_path / "calib.json", calib)
+    back = read_calibration(tmp_path / "calib.json")
+    np.testing.assert_allclose(back.K, calib.K)
+    np.testing.assert_allclose(back.flange_from_cam, calib.flange_from_cam)
+    np.testing.assert_allclose(back.light_plane.normal, calib.light_plane.normal)
+    assert back.light_plane.d == pytest.approx(calib.light_plane.d)
+    assert back.quality == {"method": "paper"}
+    obj = json.loads((tmp_path / "calib.json").read_text())
+    assert obj["format"] == "scan-calibration/1"
+    assert set(obj) >= {"camera", "light_plane", "flange_from_cam", "quality"}
+    assert len(obj["camera"]["dist"]) == 5
+
+
+@pytest.mark.parametrize(
+    ("mutate", "message"),
+    [
+        (lambda o: o.update(format="scan-calibration/9"), "format: expected 'scan-calibration/1'"),
+        (lambda o: o.pop("light_plane"), "missing key 'light_plane'"),
+        (
+            lambda o: o["camera"].update(K=[[1, 0], [0, 1]]),
+            "camera.K: expected a finite 3x3 matrix",
+        ),
+        (lambda o: o.update(flange_from_cam=np.eye(3).tolist()), "flange_from_cam: expected a 4x4"),
+    ],
+)
+def test_bad_calibration_file_is_refused_with_its_path(tmp_path, mutate, message):
+    write_calibration(tmp_path / "c.json", paper_calibration())
+    obj = json.loads((tmp_path / "c.json").read_text())
+    mutate(obj)
+    (tmp_path / "c.json").write_text(json.dumps(obj))
+    with pytest.raises(InputError) as err:
+        read_calibration(tmp_path / "c.json")
+    assert str(err.value).startswith(str(tmp_path / "c.json"))
+    assert message in str(err.value)
+
+
+def test_failed_write_keeps_the_previous_file(tmp_path):
+    path = tmp_path / "c.json"
+    write_calibration(path, paper_calibration())
+    before = path.read_text()
+    bad = paper_calibration()
+    bad.quality = {"not_json": object()}
+    with pytest.raises(TypeError):
+        write_calibration(path, bad)
+    assert path.read_text() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.json"]
+
+
+def test_written_files_get_ordinary_permissions(tmp_path):
+    import os
+    import stat
+
+    write_calibration(tmp_path / "c.json", paper_calibration())
+    umask = os.umask(0)
+    os.umask(umask)
+    assert stat.S_IMODE((tmp_path / "c.json").stat().st_mode) == 0o666 & ~umask
+
+
+def test_undetermined_quality_figures_are_written_as_null(tmp_path):
+    calib = paper_calibration()
+    calib.quality = {"std": np.array([0.1, np.nan]), "rms": float("inf")}
+    write_calibration(tmp_path / "c.json", calib)
+    assert json.loads((tmp_path / "c.json").read_text())["quality"] == {
+        "std": [0.1, None],
+        "rms": None,
+    }
