@@ -15,7 +15,7 @@ from pathlib import Path
 
 from calibration.pipeline import calibrate_session
 from metrology.ef_check import run_ef_check
-from scanner.formats.calibration_file import write_calibration
+from scanner.formats.calibration_file import read_calibration, write_calibration
 from scanner.formats.session import read_session
 from scanner.virtual_cell.simulate import simulate_cell
 
@@ -57,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
             write_calibration(path, res.calibration)
             calibrations[method] = (path, time.perf_counter() - t0)
         for name, (path, seconds) in calibrations.items():
-            r = run_ef_check(sim / "check", path, None)
+            r = run_ef_check(read_session(sim / "check"), read_calibration(path))
             t = "-" if seconds != seconds else f"{seconds:.1f}"
             lines.append(
                 f"| {cell} | {name} | {r.mean_abs_error_mm:.4f} | {r.max_abs_error_mm:.4f} | "

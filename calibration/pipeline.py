@@ -36,6 +36,7 @@ from calibration.hand_eye import (
     calibrate_hand_eye,
     paper_hand_eye,
 )
+from calibration.intrinsics import calibrate_intrinsics
 from calibration.light_plane import (
     LaserView,
     LightPlaneResult,
@@ -44,15 +45,30 @@ from calibration.light_plane import (
     paper_light_plane,
 )
 from scanner.core.camera import CameraModel, intersect_rays_with_plane
+from scanner.core.images import load_gray_image
+from scanner.core.parallel import process_pool
 from scanner.core.targets import ChessboardTarget, ConcentricCirclesTarget, TargetSpec
-from scanner.formats.calibration_file import Calibration
+from scanner.formats.calibration_file import Calibration, CalibrationQuality
 from scanner.formats.session import Frame, Session
+from scanner.stripe.extract import extract_stripe
 
 __all__ = ["CalibrationResult", "calibrate_session", "stripe_pixel_at", "target_extent_mm"]
 
 logger = logging.getLogger(__name__)
 
 METHODS = ("default", "paper")
+
+
+@dataclass(frozen=True)
+class Rejection:
+    """A frame left out of a calibration stage, and why."""
+
+    frame_id: int
+    stage: str
+    reason: str
+
+    def to_json(self) -> dict[str, Any]:
+        return {"frame_id": self.frame_id, "stage": self.stage, "reason": self.reason}
 
 
 @dataclass
@@ -88,9 +104,12 @@ class CalibrationResult:
     intrinsics: Any
     session: Session
     hand_eye_views: list[PosedView] = field(default_factory=list)
+    rejected: list[Rejection] = field(default_factory=list)
+    per_view_rms_px: dict[int, float] = field(default_factory=dict)
+    timings: dict[str, float] = field(default_factory=dict)
 
     @property
-    def quality(self) -> dict[str, Any]:
+    def quality(self) -> CalibrationQuality:
         return self.calibration.quality
 
 
@@ -158,7 +177,6 @@ def _progress(iterable: Any, enabled: bool, desc: str, total: int | None = None)
 
 
 def _extract(session: Session, frame: Frame) -> NDArray:
-    from scanner.stripe.extract import extract_stripe
 
     image, background = session.load_laser_pair(frame)
     prof = extract_stripe(image, mode="precise", background=background)
@@ -168,7 +186,6 @@ def _extract(session: Session, frame: Frame) -> NDArray:
 
 
 def _detect_one(args: tuple[str, TargetSpec]) -> TargetObservation:
-    from scanner.core.images import load_gray_image
 
     return detect_target(load_gray_image(args[0]), args[1])
 
@@ -182,7 +199,6 @@ def _detect_all(
         for job in jobs:
             yield _detect_one(job)
         return
-    from scanner.core.parallel import process_pool
 
     with process_pool(workers) as pool:
         yield from pool.map(_detect_one, jobs, chunksize=2)
@@ -274,7 +290,7 @@ def calibrate_session(
     stage("detect")
     given = observations or {}
     observations = {}
-    rejected: list[dict[str, Any]] = []
+    rejected: list[Rejection] = []
     with_target = [f for f in session.frames if f.target_image is not None]
     todo = [f for f in with_target if f.id not in given]
     found_now = dict(
@@ -288,7 +304,7 @@ def calibrate_session(
         obs = given[f.id] if f.id in given else found_now[f.id]
         observations[f.id] = obs
         if not obs:
-            rejected.append({"frame_id": f.id, "stage": "detect", "reason": obs.reason})
+            rejected.append(Rejection(f.id, "detect", obs.reason))
     found = [f for f in with_target if observations[f.id]]
     if not found:
         raise ValueError(f"target not found in any of the {len(with_target)} target images")
@@ -297,7 +313,6 @@ def calibrate_session(
     # 2. intrinsics
     stage("intrinsics")
     t1 = time.perf_counter()
-    from calibration.intrinsics import calibrate_intrinsics
 
     intr = calibrate_intrinsics(
         [observations[f.id] for f in found],
@@ -306,7 +321,7 @@ def calibrate_session(
         target=target,
     )
     for idx, why in intr.rejected:
-        rejected.append({"frame_id": found[idx].id, "stage": "intrinsics", "reason": why})
+        rejected.append(Rejection(found[idx].id, "intrinsics", why))
     camera = CameraModel(session.width, session.height, intr.K, intr.dist)
     timings["intrinsics_s"] = time.perf_counter() - t1
 
@@ -324,7 +339,7 @@ def calibrate_session(
         obs = observations[f.id]
         pose = estimate_pose(obs.points_px, obs.points_target, camera)
         if not pose:
-            rejected.append({"frame_id": f.id, "stage": "extrinsics", "reason": pose.reason})
+            rejected.append(Rejection(f.id, "extrinsics", pose.reason))
             continue
         cam_from_target[f.id] = intr_pose.get(f.id, pose.cam_from_target)  # type: ignore[arg-type]
         extrinsics_q.append(
@@ -373,7 +388,7 @@ def calibrate_session(
         why = plane_res.reason if plane_res is not None else "no light-plane views"
         raise ValueError(f"light plane ({method}): {why}")
     for r in plane_res.rejected:
-        rejected.append({"frame_id": r["frame_id"], "stage": "light plane", "reason": r["reason"]})
+        rejected.append(Rejection(int(r["frame_id"]), "light plane", r["reason"]))
     timings["light_plane_s"] = time.perf_counter() - t1
 
     # 6. hand-eye
@@ -412,6 +427,7 @@ def calibrate_session(
 
     warnings = list(intr.warnings) + list(he.warnings)
     verdict, check = _verdict(intr, plane_res, he, rejected)
+    per_view = {found[i].id: float(r) for i, r in zip(intr.view_indices, intr.per_view_rms_px)}
     quality: dict[str, Any] = {
         "method": method,
         "verdict": verdict,
@@ -422,14 +438,12 @@ def calibrate_session(
             "method": intr.method,
             "rms_px": float(intr.rms_px),
             "std": {k: float(v) for k, v in intr.std.items()},
-            "per_view_rms_px": {
-                str(found[i].id): float(r) for i, r in zip(intr.view_indices, intr.per_view_rms_px)
-            },
+            "per_view_rms_px": {str(k): v for k, v in per_view.items()},
         },
         "extrinsics": extrinsics_q,
         "light_plane": plane_res.quality(),
         "hand_eye": he.quality(),
-        "rejected": rejected,
+        "rejected": [r.to_json() for r in rejected],
         "skipped": skipped if method == "default" else [],
         "warnings": warnings,
         "timings": timings,
@@ -459,6 +473,9 @@ def calibrate_session(
         intr,
         session,
         hand_eye_views=views,
+        rejected=rejected,
+        per_view_rms_px=per_view,
+        timings=timings,
     )
 
 
@@ -519,10 +536,10 @@ def _paper_hand_eye(
 
 
 def _verdict(
-    intr: Any, plane: LightPlaneResult, he: HandEyeResult, rejected: list[dict[str, Any]]
+    intr: Any, plane: LightPlaneResult, he: HandEyeResult, rejected: list[Rejection]
 ) -> tuple[str, list[int]]:
     """``"good"`` or ``"check these frames: ..."`` with the frames to look at."""
-    check: set[int] = {int(r["frame_id"]) for r in rejected}
+    check: set[int] = {r.frame_id for r in rejected}
     rms = [p["rms_px"] for p in he.per_pose if "rms_px" in p]
     if rms:
         med = float(np.median(rms))

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 from matplotlib.figure import Figure
+from numpy.typing import NDArray
 
 from calibration.pipeline import CalibrationResult
 from scanner.formats import html as rep
@@ -94,6 +95,23 @@ def _plane_figure(result: CalibrationResult) -> Figure | None:
     return fig
 
 
+def _verdict_box(verdict: str, warnings: tuple[str, ...]) -> str:
+    """The verdict as a coloured banner: green when good, red when poor, grey otherwise."""
+    cls = {"good": "pass", "poor": "fail"}.get(verdict.split()[0].lower(), "na")
+    detail = f"{len(warnings)} warning(s), listed at the end" if warnings else "no warnings"
+    return (
+        f'<div class="summary {cls}">Verdict: {html.escape(verdict)} '
+        f'<span class="detail">— {detail}</span></div>\n'
+    )
+
+
+def _matrix_table(matrix: NDArray) -> str:
+    """A 4x4 transform as a 4-row table of fixed decimals."""
+    return rep.table(
+        ["", "x", "y", "z", "t (mm)"], [[f"row {i}", *row] for i, row in enumerate(matrix)], 6
+    )
+
+
 def write_calibration_report(
     result: CalibrationResult, report_dir: str | os.PathLike[str], name: str = "calibration.html"
 ) -> Path:
@@ -109,38 +127,37 @@ def write_calibration_report(
     """
     q = result.calibration.quality
     cal = result.calibration
-    intr = q["intrinsics"]
-    std = intr.get("std", {})
-    verdict = q["verdict"]
-    body = f'<p class="summary"><strong>Verdict: {html.escape(verdict)}</strong></p>\n'
+    intr = result.intrinsics
+    std = dict(intr.std)
+    body = _verdict_box(q.verdict or "unknown", q.warnings)
 
     body += rep.section(
         "Camera",
         rep.key_value_table(
             {
-                "method": intr["method"],
+                "method": intr.method,
                 "image": f"{cal.width} x {cal.height}",
                 "fx (px)": _fmt(cal.K[0, 0], std.get("fx"), 3),
                 "fy (px)": _fmt(cal.K[1, 1], std.get("fy"), 3),
                 "cx (px)": _fmt(cal.K[0, 2], std.get("cx"), 3),
                 "cy (px)": _fmt(cal.K[1, 2], std.get("cy"), 3),
                 "dist (k1 k2 p1 p2 k3)": " ".join(f"{d:.5g}" for d in cal.dist),
-                "reprojection RMS (px)": _fmt(intr["rms_px"], None, 4),
+                "reprojection RMS (px)": _fmt(intr.rms_px, None, 4),
             }
         ),
     )
-    lpq = q["light_plane"]
+    lpq = result.light_plane
     body += rep.section(
         "Light plane (camera frame, n·p + d = 0)",
         rep.key_value_table(
             {
-                "method": lpq["method"],
+                "method": lpq.method,
                 "normal": " ".join(f"{v:.6f}" for v in cal.light_plane.normal),
-                "normal uncertainty (deg)": _fmt(lpq["std_normal_deg"], None, 5),
-                "d (mm)": _fmt(cal.light_plane.d, lpq["std_d_mm"], 4),
-                "residual RMS (mm)": _fmt(lpq["rms_mm"], None, 4),
-                "points": lpq["n_points"],
-                "frames used / rejected": f"{len(lpq['per_frame'])} / {len(lpq['rejected'])}",
+                "normal uncertainty (deg)": _fmt(lpq.std_normal_deg, None, 5),
+                "d (mm)": _fmt(cal.light_plane.d, lpq.std_d_mm, 4),
+                "residual RMS (mm)": _fmt(lpq.rms_mm, None, 4),
+                "points": lpq.n_points,
+                "frames used / rejected": f"{len(lpq.per_frame)} / {len(lpq.rejected)}",
             }
         )
         + (
@@ -151,56 +168,56 @@ def write_calibration_report(
         + (
             rep.figure(
                 _bar(
-                    [p["frame_id"] for p in lpq["per_frame"]],
-                    [p["rms_mm"] * 1000 for p in lpq["per_frame"]],
+                    [p["frame_id"] for p in lpq.per_frame],
+                    [p["rms_mm"] * 1000 for p in lpq.per_frame],
                     "RMS (µm)",
                     "light plane residual per frame",
                 ),
                 "Light-plane residual RMS per frame",
             )
-            if lpq["per_frame"]
+            if lpq.per_frame
             else ""
         ),
     )
-    he = q["hand_eye"]
+    he = result.hand_eye
     x = cal.flange_from_cam
     body += rep.section(
         "Hand-eye (flange_from_cam)",
         rep.key_value_table(
             {
-                "method": he["method"],
+                "method": he.method,
                 "translation (mm)": " ".join(
-                    _fmt(x[i, 3], he["std_translation_mm"][i], 3) for i in range(3)
+                    _fmt(x[i, 3], float(he.std_translation_mm[i]), 3) for i in range(3)
                 ),
                 "rotation uncertainty (deg, about cam x y z)": " ".join(
-                    _fmt(v, None, 4) for v in he["std_rotation_deg"]
+                    _fmt(v, None, 4) for v in he.std_rotation_deg
                 ),
-                "chain reprojection RMS (px)": _fmt(he["rms_px"], None, 3),
+                "chain reprojection RMS (px)": _fmt(he.rms_px, None, 3),
                 "target origin scatter in base, std x y z (mm)": " ".join(
-                    _fmt(v, None, 3) for v in he["target_spread_mm"]
+                    _fmt(v, None, 3) for v in he.target_spread_mm
                 ),
                 "closed forms tried (RMS px)": ", ".join(
-                    f"{k} {v:.3f}" for k, v in he.get("candidates_rms_px", {}).items()
+                    f"{k} {v:.3f}" for k, v in (he.candidates or {}).items()
                 )
                 or "n/a",
-                "matrix": "; ".join(" ".join(f"{v:.6f}" for v in row) for row in x),
             }
         )
+        + _matrix_table(x)
         + (
             rep.figure(
                 _bar(
-                    [p["frame_id"] for p in he["per_pose"]],
-                    [p.get("rms_px", p.get("scatter_mm", np.nan)) for p in he["per_pose"]],
-                    "RMS (px)" if he["per_pose"] and "rms_px" in he["per_pose"][0] else "mm",
+                    [p["frame_id"] for p in he.per_pose],
+                    [p.get("rms_px", p.get("scatter_mm", np.nan)) for p in he.per_pose],
+                    "RMS (px)" if he.per_pose and "rms_px" in he.per_pose[0] else "mm",
                     "hand-eye residual per pose",
                 ),
                 "Hand-eye chain residual per pose",
             )
-            if he["per_pose"]
+            if he.per_pose
             else ""
         ),
     )
-    per_view = intr.get("per_view_rms_px", {})
+    per_view = {str(k): v for k, v in result.per_view_rms_px.items()}
     if per_view:
         body += rep.section(
             "Residuals per image (intrinsics)",
@@ -210,12 +227,12 @@ def write_calibration_report(
             ),
         )
     body += rep.section("Detected features", _features_figure(result))
-    rows = [(str(r["frame_id"]), f"{r['stage']}: {r['reason']}") for r in q["rejected"]]
-    rows += [("warning", w) for w in q["warnings"]]
+    rows = [(str(r.frame_id), f"{r.stage}: {r.reason}") for r in result.rejected]
+    rows += [("warning", w) for w in q.warnings]
     if rows:
         body += rep.section("Rejected frames and warnings", rep.key_value_table(rows))
     body += rep.section(
-        "Timings", rep.key_value_table({k: f"{v:.2f}" for k, v in q.get("timings", {}).items()})
+        "Timings", rep.key_value_table({k: f"{v:.2f}" for k, v in result.timings.items()})
     )
     page = rep.page("Calibration report", body, subtitle=str(result.session.root))
     return rep.write_page(Path(report_dir) / name, page)

@@ -56,7 +56,7 @@ from numpy.typing import ArrayLike, NDArray
 from metrology.fit import Fit, PlaneFit, SphereFit, fit_plane, fit_sphere
 from metrology.measure import cloud_points
 from metrology.plan import Region, load_dataclass
-from scanner.formats.html import STATUS_ERROR, STATUS_FAIL, STATUS_PASS, ToleranceRow
+from scanner.core.tolerance import STATUS_ERROR, STATUS_FAIL, STATUS_PASS, ToleranceRow
 
 __all__ = [
     "MPE",
@@ -67,7 +67,6 @@ __all__ = [
     "SphereArtefact",
     "load_acceptance_spec",
     "run_acceptance",
-    "write_acceptance_report",
 ]
 
 log = logging.getLogger(__name__)
@@ -442,11 +441,3 @@ def _with_mask(fit: Fit, mask: NDArray) -> Fit:
     full = mask.copy()
     full[mask] = fit.inliers
     return dataclasses.replace(fit, inliers=full)
-
-
-def write_acceptance_report(result: AcceptanceResult, out_json: str | os.PathLike[str]) -> dict:
-    """Write ``<out>.json``, ``<out>.csv`` and ``<out>.html`` of an acceptance result (the
-    writer lives in :mod:`metrology.report`; re-exported here for convenience)."""
-    from metrology.report import write_acceptance_report as write
-
-    return write(result, out_json)

@@ -24,23 +24,22 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from tqdm import tqdm
 
 from calibration.detection.conics import fit_conic, fit_line, line_conic_intersections
 from calibration.detection.detect import detect_target
 from calibration.extrinsics import estimate_pose
 from scanner.core.camera import CameraModel, intersect_rays_with_plane
 from scanner.core.conventions import invert_transform, transform_points
-from scanner.core.fileio import InputError, write_json_atomic
+from scanner.core.fileio import InputError
 from scanner.core.targets import ConcentricCirclesTarget
-from scanner.formats.calibration_file import Calibration, read_calibration
-from scanner.formats.session import Frame, Session, read_session
+from scanner.formats.calibration_file import Calibration
+from scanner.formats.session import Frame, Session
 from scanner.stripe.extract import StripeFlag, extract_stripe, orientation_from_calibration
 
 __all__ = ["EFCheckResult", "EFMeasurement", "measure_ef", "run_ef_check"]
@@ -352,23 +351,32 @@ def check_frame(
 
 
 def run_ef_check(
-    session_path: str | os.PathLike[str],
-    calibration_path: str | os.PathLike[str],
-    out_path: str | os.PathLike[str] | None = None,
-    report_path: str | os.PathLike[str] | None = None,
+    session: Session,
+    calibration: Calibration,
     progress: bool = False,
     mode: str = "precise",
+    calibration_source: str = "",
 ) -> EFCheckResult:
-    """Run the EF check on a ``check`` session and write the result JSON (and HTML report).
+    """Run the EF check on a ``check`` session with a calibration; write nothing.
+
+    Parameters
+    ----------
+    session : Session
+        A ``check`` session with a concentric-circles target.
+    calibration : Calibration
+    progress : bool
+        tqdm progress bar on standard error.
+    mode : {"precise", "fast"}
+        Stripe extractor.
+    calibration_source : str
+        Where the calibration came from (its file), recorded in the result.
 
     Raises
     ------
     InputError
-        Bad session or calibration, image size not matching the calibration, or no frame
-        where EF could be measured (the reasons of the first frames are given).
+        Bad session, image size not matching the calibration, or no frame where EF could be
+        measured (the reasons of the first frames are given).
     """
-    session = read_session(session_path)
-    calibration = read_calibration(calibration_path)
     target = _load_check_session(session)
     if (session.width, session.height) != (calibration.width, calibration.height):
         raise InputError(
@@ -379,8 +387,6 @@ def run_ef_check(
     frames = [f for f in session.frames if f.laser_image is not None]
     iterator: Any = frames
     if progress:
-        from tqdm import tqdm
-
         iterator = tqdm(frames, desc="EF check", unit="img", leave=False)
     measurements = [check_frame(session, f, calibration, mode) for f in iterator]
     o_positions = np.array(
@@ -389,17 +395,11 @@ def run_ef_check(
     result = EFCheckResult(
         nominal_mm=2 * target.radius_mm,
         measurements=measurements,
-        session=str(Path(session_path).resolve()),
-        calibration=str(Path(calibration_path).resolve()),
+        session=str(session.root.resolve()),
+        calibration=calibration_source,
         o_positions_base=o_positions,
     )
     if not result.valid:
         reasons = "; ".join(f"frame {m.id}: {m.reason}" for m in measurements[:3])
         raise InputError(session.root, f"EF could not be measured in any laser image ({reasons})")
-    if out_path is not None:
-        write_json_atomic(out_path, result.to_json())
-    if report_path is not None:
-        from metrology.ef_report import write_ef_report
-
-        write_ef_report(result, report_path)
     return result

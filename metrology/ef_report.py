@@ -5,17 +5,14 @@ from __future__ import annotations
 import math
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
+from metrology.ef_check import EFCheckResult
 from scanner.formats import html as rep
-
-if TYPE_CHECKING:
-    from metrology.ef_check import EFCheckResult
 
 __all__ = ["write_ef_report"]
 

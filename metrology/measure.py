@@ -38,7 +38,7 @@ from metrology.fit import (
 from metrology.plan import FeatureSpec, MeasurementSpec, Plan, load_plan
 from scanner.core.conventions import check_points
 from scanner.core.fileio import InputError
-from scanner.formats.html import STATUS_ERROR, STATUS_FAIL, STATUS_NA, STATUS_PASS, ToleranceRow
+from scanner.core.tolerance import STATUS_ERROR, STATUS_FAIL, STATUS_NA, STATUS_PASS, ToleranceRow
 
 __all__ = [
     "CLOUD_SUFFIXES",

@@ -25,7 +25,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanner.core.fileio import atomic_output, write_json_atomic
+from scanner.core.tolerance import ToleranceRow, format_value
 from scanner.formats import html as rep
+from scanner.formats.calibration_file import read_calibration
 
 __all__ = [
     "acceptance_html",
@@ -253,13 +255,15 @@ def provenance_items(provenance: dict[str, Any], cloud_path: str | None) -> list
         items.append(("calibration file", cal))
         items.append(("calibration written", _mtime_utc(Path(cal))))
         try:
-            from scanner.formats.calibration_file import read_calibration
-
-            calib = read_calibration(cal)
-            q = calib.quality or {}
-            for key in ("method", "rms_px", "reprojection_rms_px", "created_utc", "date"):
-                if key in q and not isinstance(q[key], dict | list):
-                    items.append((f"calibration {key}", q[key]))
+            q = read_calibration(cal).quality
+            figures = {
+                "method": q.method,
+                "verdict": q.verdict,
+                "intrinsics RMS (px)": q.intrinsics_rms_px,
+                "chain RMS (px)": q.hand_eye_rms_px,
+                "light-plane RMS (mm)": q.light_plane_rms_mm,
+            }
+            items += [(f"calibration {k}", v) for k, v in figures.items() if v is not None]
         except (ValueError, OSError) as exc:
             items.append(("calibration note", f"cannot read it now: {exc}"))
     elif provenance:
@@ -275,7 +279,7 @@ def provenance_items(provenance: dict[str, Any], cloud_path: str | None) -> list
     return items
 
 
-def write_rows_csv(path: str | os.PathLike[str], rows: Sequence[rep.ToleranceRow]) -> None:
+def write_rows_csv(path: str | os.PathLike[str], rows: Sequence[ToleranceRow]) -> None:
     """The Nominal / Actual / Deviation / Tolerance / Status table as CSV (atomic)."""
     cols = ["name", "unit", "nominal", "actual", "deviation", "lower", "upper", "status", "note"]
     buf = io.StringIO()
@@ -299,7 +303,7 @@ def _fit_parameters(fit: Any) -> str:
         return f"failed: {fit.reason}"
 
     def v3(a: NDArray, d: int = 3) -> str:
-        return "(" + ", ".join(rep.format_value(float(x), d) for x in a) + ")"
+        return "(" + ", ".join(format_value(float(x), d) for x in a) + ")"
 
     kind = fit.kind
     if kind == "plane":

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 from numpy.typing import NDArray
 
+from calibration.detection.concentric import detect_concentric
 from calibration.detection.observations import TargetObservation
+from calibration.detection.standard import detect_chessboard, detect_circle_grid
 from scanner.core.targets import (
     ChessboardTarget,
     CircleGridTarget,
@@ -32,16 +34,10 @@ def detect_target(image: NDArray, target: TargetSpec) -> TargetObservation:
         Never a wrong labelling: ambiguous detections are refused.
     """
     if isinstance(target, ConcentricCirclesTarget):
-        from calibration.detection.concentric import detect_concentric
-
         return detect_concentric(image, target)
     if isinstance(target, ChessboardTarget):
-        from calibration.detection.standard import detect_chessboard
-
         return detect_chessboard(image, target)
     if isinstance(target, CircleGridTarget):
-        from calibration.detection.standard import detect_circle_grid
-
         return detect_circle_grid(image, target)
     raise ValueError(
         f"target: expected a ConcentricCirclesTarget, ChessboardTarget or CircleGridTarget, "

@@ -7,14 +7,27 @@ input, never with a bare traceback. Set ``SCANNER_DEBUG=1`` to see the traceback
 from __future__ import annotations
 
 import argparse
-import importlib
 import logging
 import os
 import sys
 from collections.abc import Sequence
 
 from scanner import __version__
-from scanner.app.commands import COMMAND_MODULES
+from scanner.app.commands import (
+    acceptance,
+    calibrate,
+    check,
+    demo,
+    history,
+    measure,
+    scan,
+    serve,
+    simulate,
+    target,
+)
+
+#: The sub-commands in the order ``scanner --help`` lists them.
+COMMANDS = (simulate, target, calibrate, check, scan, measure, acceptance, demo, serve, history)
 
 EXIT_BAD_INPUT = 2
 EXIT_FAILED = 1
@@ -28,9 +41,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress details")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name in COMMAND_MODULES:
-        module = importlib.import_module(f"scanner.app.commands.{name}")
-        module.register(sub)
+    for command in COMMANDS:
+        command.register(sub)
     return parser
 
 

@@ -16,19 +16,27 @@ from __future__ import annotations
 
 import logging
 import sys
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, TypeVar
 
-from scanner.core.config import CONFIG_DIR
-from scanner.core.fileio import write_json_atomic
+from calibration.compare import compare_calibrations
+from scanner.app import stages
+from scanner.core.config import resolve_config
+from scanner.core.fileio import InputError, write_json_atomic
+from scanner.core.tolerance import ToleranceRow
 from scanner.formats import html as rep
+from scanner.formats.layout import JobLayout
+from scanner.scanning.pipeline import ScanOptions
+from scanner.virtual_cell.cell import load_cell
+from scanner.virtual_cell.truth import CellTruth, read_truth
 
 __all__ = ["DemoResult", "run_demo"]
 
 logger = logging.getLogger(__name__)
+
+T = TypeVar("T")
 
 STAGES = ("simulate", "calibrate", "check", "scan", "measure", "acceptance", "report")
 
@@ -48,12 +56,12 @@ def _say(message: str) -> None:
 
 
 def _plan_for(cell: str, kind: str) -> Path | None:
-    path = (
-        CONFIG_DIR / "plans" / f"{kind}_{cell}.toml"
-        if kind == "acceptance"
-        else CONFIG_DIR / "plans" / f"{cell}_sweep.toml"
-    )
-    return path if path.is_file() else None
+    """The shipped plan (``sweep``) or acceptance spec of a cell, if there is one."""
+    name = f"{kind}_{cell}" if kind == "acceptance" else f"{cell}_sweep"
+    try:
+        return resolve_config(name, "plans")
+    except InputError:
+        return None
 
 
 def run_demo(
@@ -61,7 +69,7 @@ def run_demo(
     out_dir: str | Path | None = None,
     seed: int = 0,
     sweep_frames: int | None = None,
-    method: str = "default",
+    method: Literal["default", "paper"] = "default",
     reuse: bool = True,
     progress: bool = True,
 ) -> DemoResult:
@@ -82,133 +90,66 @@ def run_demo(
     reuse : bool
         Keep sessions already simulated in ``out_dir`` with the same cell and seed.
     """
-    from calibration.compare import compare_calibrations
-    from calibration.pipeline import calibrate_session
-    from calibration.report import write_calibration_report
-    from metrology.acceptance import run_acceptance
-    from metrology.ef_check import run_ef_check
-    from metrology.measure import measure_cloud
-    from metrology.report import write_measurement_report
-    from scanner.formats.calibration_file import write_calibration
-    from scanner.formats.session import read_session
-    from scanner.scanning.pipeline import ScanOptions, scan_session
-    from scanner.virtual_cell.cell import load_cell
-    from scanner.virtual_cell.simulate import simulate_cell
-    from scanner.virtual_cell.truth import read_truth
-
     out = Path(out_dir) if out_dir is not None else Path("reports") / f"demo-{Path(cell).stem}"
     out.mkdir(parents=True, exist_ok=True)
-    sessions = out / "sessions"
-    result = DemoResult(out_dir=out, index_html=out / "index.html")
-    timings = result.seconds
+    job = JobLayout(out)
+    result = DemoResult(out_dir=out, index_html=job.index)
+    clock = stages.StageClock(result.seconds)
 
-    def stage(name: str, fn: Callable[[], Any]) -> Any:
+    def stage(name: str, fn: Callable[[], T]) -> T:
         index = STAGES.index(name) + 1
         _say(f"[{index}/{len(STAGES)}] {name} ...")
-        t0 = time.perf_counter()
-        value = fn()
-        timings[name] = time.perf_counter() - t0
-        _say(f"[{index}/{len(STAGES)}] {name} done in {timings[name]:.1f} s")
+        value = clock.run(name, fn)
+        _say(f"[{index}/{len(STAGES)}] {name} done in {clock.seconds[name]:.1f} s")
         return value
 
-    # 1. simulate
-    def simulate() -> Any:
-        truth_path = sessions / "truth.json"
-        if reuse and truth_path.is_file():
-            truth = read_truth(truth_path)
-            frames = sweep_frames or load_cell(cell).sweep.frames
-            if (
-                truth.cell == Path(cell).stem
-                and truth.seed == seed
-                and "sweep" in truth.sessions
-                and len(truth.sessions["sweep"].frames) == frames
-                and all(
-                    (sessions / s / "session.json").is_file()
-                    for s in ("calibration", "check", "sweep")
-                )
-            ):
-                _say(f"    reusing the sessions in {sessions}")
-                return truth
-        return simulate_cell(
-            cell, sessions, seed=seed, sweep_frames=sweep_frames, progress=progress
-        )
-
-    truth = stage("simulate", simulate)
-    true_calibration = truth.calibration()
-
-    # 2. calibrate
-    calib_path = out / "calibration.json"
-
-    def calibrate() -> Any:
-        res = calibrate_session(
-            read_session(sessions / "calibration"), method=method, progress=progress
-        )
-        write_calibration(calib_path, res.calibration)
-        write_calibration_report(res, out, "calibration.html")
-        return res
-
-    calib_result = stage("calibrate", calibrate)
-    errors = compare_calibrations(calib_result.calibration, true_calibration)
-
-    # 3. check
+    truth = stage("simulate", lambda: _simulate(cell, job, seed, sweep_frames, reuse, progress))
+    calibrated = stage(
+        "calibrate",
+        lambda: stages.calibrate(
+            job.session("calibration"), job.calibration, method=method, progress=progress
+        ),
+    )
+    errors = compare_calibrations(calibrated.result.calibration, truth.calibration())
     check = stage(
         "check",
-        lambda: run_ef_check(
-            sessions / "check",
-            calib_path,
-            out / "check.json",
-            out / "check.html",
-            progress=progress,
+        lambda: (
+            stages.check(job.session("check"), job.calibration, job.check, progress=progress).result
         ),
     )
-
-    # 4. scan
-    cloud_path = out / "cloud.ply"
     scan = stage(
         "scan",
-        lambda: scan_session(
-            sessions / "sweep",
-            calib_path,
-            ScanOptions(mode="precise", workers=2),
-            cloud_path,
-            progress=progress,
+        lambda: (
+            stages.scan(
+                [job.session("sweep")],
+                job.calibration,
+                job.cloud,
+                options=ScanOptions(mode="precise", workers=2),
+                progress=progress,
+            ).result
         ),
     )
-
-    # 5. measure
     plan_path = _plan_for(Path(cell).stem, "sweep")
-    measure = None
-    if plan_path is not None:
-
-        def do_measure() -> Any:
-            report = measure_cloud(cloud_path, plan_path)
-            report.cloud_path = str(cloud_path)
-            report.plan_path = str(plan_path)
-            write_measurement_report(report, out / "measure.json")
-            return report
-
-        measure = stage("measure", do_measure)
-
-    # 6. acceptance
+    measure = (
+        stage("measure", lambda: stages.measure(job.cloud, plan_path, job.measure).report)
+        if plan_path is not None
+        else None
+    )
     acc_path = _plan_for(Path(cell).stem, "acceptance")
-    acceptance = None
-    if acc_path is not None:
+    acceptance = (
+        stage("acceptance", lambda: stages.acceptance(job.cloud, acc_path, job.acceptance).result)
+        if acc_path is not None
+        else None
+    )
 
-        def do_acceptance() -> Any:
-            from metrology.acceptance import write_acceptance_report
-
-            res = run_acceptance(cloud_path, acc_path)
-            write_acceptance_report(res, out / "acceptance.json")
-            return res
-
-        acceptance = stage("acceptance", do_acceptance)
-
-    # 7. the index page
+    quality = calibrated.quality
     figures: dict[str, Any] = {
         "cell": Path(cell).stem,
         "method": method,
         "calibration_vs_truth": errors.to_json(),
-        "calibration_rms_px": calib_result.quality.get("rms_px"),
+        "calibration_rms_px": quality.hand_eye_rms_px,
+        "intrinsics_rms_px": quality.intrinsics_rms_px,
+        "light_plane_rms_mm": quality.light_plane_rms_mm,
         "ef_mean_abs_error_mm": check.mean_abs_error_mm,
         "ef_max_abs_error_mm": check.max_abs_error_mm,
         "ef_mean_rel_error": check.mean_rel_error,
@@ -227,15 +168,52 @@ def run_demo(
         }
         figures["measure_passed"] = bool(measure.passed)
     if acceptance is not None:
+        figures["acceptance"] = {
+            f"{c.symbol} {c.artefact}": {
+                "value_mm": c.value_mm,
+                "mpe_mm": c.mpe_mm,
+                "status": c.row.final_status,
+            }
+            for c in acceptance.characteristics
+        }
         figures["acceptance_passed"] = bool(acceptance.passed)
     result.figures = figures
 
     def report() -> None:
-        write_json_atomic(out / "summary.json", {"figures": figures, "seconds": timings})
+        write_json_atomic(job.summary, {"figures": figures, "seconds": result.seconds})
         rep.write_page(result.index_html, _index_html(result, errors, check, measure, acceptance))
 
     stage("report", report)
     return result
+
+
+def _simulate(
+    cell: str,
+    job: JobLayout,
+    seed: int,
+    sweep_frames: int | None,
+    reuse: bool,
+    progress: bool,
+) -> CellTruth:
+    """The job's sessions: reused when the folder holds this cell's at this seed, else rendered."""
+    if reuse and job.truth.is_file():
+        truth = read_truth(job.truth)
+        frames = sweep_frames or load_cell(cell).sweep.frames
+        if (
+            truth.cell == Path(cell).stem
+            and truth.seed == seed
+            and "sweep" in truth.sessions
+            and len(truth.sessions["sweep"].frames) == frames
+            and all(
+                (job.session(s) / "session.json").is_file()
+                for s in ("calibration", "check", "sweep")
+            )
+        ):
+            _say(f"    reusing the sessions in {job.sessions}")
+            return truth
+    return stages.simulate(
+        cell, job.sessions, seed=seed, sweep_frames=sweep_frames, progress=progress
+    )
 
 
 def _link(path: Path, label: str) -> str:
@@ -246,7 +224,7 @@ def _index_html(result: DemoResult, errors: Any, check: Any, measure: Any, accep
     out = result.out_dir
     f = result.figures
     rows = [
-        rep.ToleranceRow(
+        ToleranceRow(
             "EF mean absolute error",
             nominal=0.0,
             actual=check.mean_abs_error_mm,
@@ -254,7 +232,7 @@ def _index_html(result: DemoResult, errors: Any, check: Any, measure: Any, accep
             upper=0.03,
             unit="mm",
         ),
-        rep.ToleranceRow(
+        ToleranceRow(
             "Spread of O in the base frame",
             nominal=0.0,
             actual=check.o_spread_mm,

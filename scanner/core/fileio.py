@@ -5,14 +5,22 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-__all__ = ["InputError", "atomic_output", "write_json_atomic", "write_text_atomic"]
+__all__ = [
+    "InputError",
+    "atomic_output",
+    "check_outputs_apart",
+    "commit_together",
+    "write_json_atomic",
+    "write_text_atomic",
+]
 
 
 class InputError(ValueError):
@@ -93,3 +101,62 @@ def write_json_atomic(path: str | os.PathLike[str], obj: Any) -> None:
     """
     text = json.dumps(_without_nan(obj), indent=2, default=_json_default, allow_nan=False)
     write_text_atomic(path, text + "\n")
+
+
+@contextlib.contextmanager
+def commit_together(folder: str | os.PathLike[str]) -> Iterator[Callable[[Path], Path]]:
+    """Write several outputs of one run so that they appear together or not at all.
+
+    Yields ``staged(final_path) -> Path``: where to write ``final_path`` for now (same name,
+    in a hidden folder beside ``folder``'s outputs). Writers that derive sibling names from
+    their path (``x.json`` -> ``x.csv``, ``x.html``) can be handed the staged path. On
+    success every staged file is renamed onto its final path; on any failure nothing final
+    is touched and the staged files are removed, so a failed run never replaces earlier
+    outputs with half of a new set.
+    """
+    root = Path(folder)
+    root.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(prefix=".scanner-commit-", dir=root))
+    finals: dict[Path, Path] = {}
+
+    def staged(final: Path) -> Path:
+        final = Path(final)
+        final.parent.mkdir(parents=True, exist_ok=True)
+        sub = stage / str(len(finals))
+        sub.mkdir()
+        finals[sub] = final.parent
+        return sub / final.name
+
+    try:
+        yield staged
+        for sub, parent in finals.items():
+            for produced in sorted(sub.iterdir()):
+                if not produced.name.startswith("."):
+                    os.replace(produced, parent / produced.name)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        return a.exists() and b.exists() and os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def check_outputs_apart(inputs: Iterable[str | os.PathLike[str]], outputs: Iterable[Path]) -> None:
+    """Refuse an output that is, or would replace, an input: same path, same file, or a file
+    inside an input folder (a session).
+
+    Raises
+    ------
+    InputError
+        Naming the output and the input it would overwrite.
+    """
+    ins = [Path(p).resolve() for p in inputs]
+    for out in outputs:
+        o = Path(out).resolve()
+        for i in ins:
+            inside = i.is_dir() and (o == i or i in o.parents)
+            if o == i or inside or _same_file(o, i):
+                raise InputError(out, f"would overwrite the input {i}; write it elsewhere")

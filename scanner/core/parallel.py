@@ -8,10 +8,13 @@ cost an interpreter start and the imports (about a second) once per pool, not pe
 
 from __future__ import annotations
 
+import logging
 import multiprocessing
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import Executor, ProcessPoolExecutor, ThreadPoolExecutor
 
 __all__ = ["process_pool"]
+
+log = logging.getLogger(__name__)
 
 
 def _limit_threads() -> None:
@@ -28,10 +31,18 @@ def _limit_threads() -> None:
         pass
 
 
-def process_pool(workers: int) -> ProcessPoolExecutor:
-    """A process pool of ``workers`` spawned processes, each limited to one thread."""
+def process_pool(workers: int) -> Executor:
+    """A process pool of ``workers`` spawned processes, each limited to one thread.
+
+    In a daemonic process (a Dask worker, a host's own daemon pool), which may not start
+    children, it is a thread pool of ``workers`` threads instead: the stages' heavy steps
+    (OpenCV, NumPy) release the GIL, and the stage still runs rather than failing.
+    """
     if workers < 1:
         raise ValueError(f"workers: expected >= 1, got {workers}")
+    if multiprocessing.current_process().daemon:
+        log.info("daemonic process: %d worker threads instead of processes", workers)
+        return ThreadPoolExecutor(max_workers=workers)
     return ProcessPoolExecutor(
         max_workers=workers,
         mp_context=multiprocessing.get_context("spawn"),

@@ -7,12 +7,17 @@ The format is a public contract (``shared/spec/interfaces.md``, section 2)::
      "light_plane": {"normal": [nx, ny, nz], "d": d},     # camera frame, normal . p + d = 0
      "flange_from_cam": 4x4,
      "quality": {...free-form...}}
+
+The quality record is free-form in the file (other tools write their own); in memory it is a
+:class:`CalibrationQuality`: the figures every reader needs as typed fields (``None`` where a
+file does not give them) and the whole record as written, for the reports.
 """
 
 from __future__ import annotations
 
 import json
 import os
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -23,7 +28,14 @@ from numpy.typing import NDArray
 from scanner.core.conventions import check_transform
 from scanner.core.fileio import InputError, write_json_atomic
 
-__all__ = ["FORMAT", "Calibration", "LightPlane", "read_calibration", "write_calibration"]
+__all__ = [
+    "FORMAT",
+    "Calibration",
+    "CalibrationQuality",
+    "LightPlane",
+    "read_calibration",
+    "write_calibration",
+]
 
 FORMAT = "scan-calibration/1"
 
@@ -56,6 +68,76 @@ class LightPlane:
         return np.asarray(points_cam, dtype=np.float64) @ self.normal + self.d
 
 
+def _number(record: Mapping[str, Any], section: str | None, key: str) -> float | None:
+    part: Any = record if section is None else record.get(section)
+    value = part.get(key) if isinstance(part, Mapping) else None
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    return float(value) if np.isfinite(value) else None
+
+
+def _text(record: Mapping[str, Any], section: str | None, key: str) -> str | None:
+    part: Any = record if section is None else record.get(section)
+    value = part.get(key) if isinstance(part, Mapping) else None
+    return value if isinstance(value, str) else None
+
+
+@dataclass(frozen=True)
+class CalibrationQuality:
+    """How good a calibration is: typed headline figures and the full record as written.
+
+    Attributes
+    ----------
+    verdict : str or None
+        ``"good"``, ``"usable"``, ``"poor"`` ... as the calibration judged itself.
+    method : str or None
+        ``"default"`` or ``"paper"``.
+    intrinsics_rms_px, hand_eye_rms_px : float or None
+        Reprojection RMS of the intrinsics and of the full chain (base to image), px.
+    light_plane_rms_mm : float or None
+        RMS distance of the stripe points to the light plane, mm.
+    light_plane_frames : int or None
+        Laser frames the light plane was fitted to.
+    hand_eye_method : str or None
+    warnings : tuple of str
+    record : mapping
+        The ``quality`` object of the file, unchanged (written back as read).
+    """
+
+    verdict: str | None = None
+    method: str | None = None
+    intrinsics_rms_px: float | None = None
+    light_plane_rms_mm: float | None = None
+    light_plane_frames: int | None = None
+    hand_eye_method: str | None = None
+    hand_eye_rms_px: float | None = None
+    warnings: tuple[str, ...] = ()
+    record: Mapping[str, Any] = field(default_factory=dict)
+
+    @classmethod
+    def from_json(cls, record: Any) -> CalibrationQuality:
+        """Read the typed figures from a file's free-form ``quality`` (missing ones: None)."""
+        if not isinstance(record, Mapping):
+            return cls()
+        plane = record.get("light_plane")
+        per_frame = plane.get("per_frame") if isinstance(plane, Mapping) else None
+        warnings = record.get("warnings")
+        return cls(
+            verdict=_text(record, None, "verdict"),
+            method=_text(record, None, "method"),
+            intrinsics_rms_px=_number(record, "intrinsics", "rms_px"),
+            light_plane_rms_mm=_number(record, "light_plane", "rms_mm"),
+            light_plane_frames=len(per_frame) if isinstance(per_frame, list) else None,
+            hand_eye_method=_text(record, "hand_eye", "method"),
+            hand_eye_rms_px=_number(record, "hand_eye", "rms_px"),
+            warnings=tuple(str(w) for w in warnings) if isinstance(warnings, list) else (),
+            record=dict(record),
+        )
+
+    def to_json(self) -> dict[str, Any]:
+        return dict(self.record)
+
+
 @dataclass
 class Calibration:
     """Camera intrinsics, distortion, light plane and hand-eye transform of one sensor."""
@@ -66,7 +148,7 @@ class Calibration:
     dist: NDArray
     light_plane: LightPlane
     flange_from_cam: NDArray
-    quality: dict[str, Any] = field(default_factory=dict)
+    quality: CalibrationQuality = field(default_factory=CalibrationQuality)
 
     def __post_init__(self) -> None:
         self.K = np.asarray(self.K, dtype=np.float64)
@@ -80,6 +162,8 @@ class Calibration:
                 f"camera.dist: expected OpenCV's 4, 5, 8, 12 or 14 coefficients, got {dist.size}"
             )
         self.dist = dist
+        if not isinstance(self.quality, CalibrationQuality):
+            self.quality = CalibrationQuality.from_json(self.quality)
         self.flange_from_cam = check_transform(self.flange_from_cam, "flange_from_cam", tol=1e-5)
         if self.width <= 0 or self.height <= 0:
             raise ValueError(
@@ -100,7 +184,7 @@ class Calibration:
                 "d": float(self.light_plane.d),
             },
             "flange_from_cam": self.flange_from_cam.tolist(),
-            "quality": self.quality,
+            "quality": self.quality.to_json(),
         }
 
 
@@ -141,7 +225,7 @@ def read_calibration(path: str | os.PathLike[str]) -> Calibration:
                 np.asarray(plane["normal"], dtype=np.float64), float(plane["d"])
             ),
             flange_from_cam=np.asarray(obj["flange_from_cam"], dtype=np.float64),
-            quality=dict(obj.get("quality") or {}),
+            quality=CalibrationQuality.from_json(obj.get("quality")),
         )
     except KeyError as exc:
         raise InputError(p, f"missing key {exc.args[0]!r}") from None

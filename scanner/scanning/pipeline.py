@@ -29,10 +29,15 @@ from scanner.core.fileio import InputError, atomic_output
 from scanner.core.images import load_laser_images
 from scanner.core.parallel import process_pool
 from scanner.formats.calibration_file import Calibration, read_calibration
+from scanner.formats.clouds import _check_format, write_cloud
 from scanner.formats.session import Frame, Session, read_session
+from scanner.scanning.stitch import build_cloud, filter_cloud, incidence_cosines, refine_sweeps
+from scanner.scanning.triangulate import Triangulator
 from scanner.stripe.extract import (
     MODES,
     StripeOptions,
+    auto_half_window,
+    estimate_noise,
     extract_stripe,
     orientation_from_calibration,
 )
@@ -302,8 +307,6 @@ def _sweep_stripe_options(
     """
     import cv2
 
-    from scanner.stripe.extract import auto_half_window, estimate_noise
-
     stripe = options.stripe
     if (stripe.half_window_px is not None and stripe.noise is not None) or not frames:
         return stripe
@@ -435,7 +438,6 @@ def _limit_incidence(
 
     Points without a normal (isolated) are kept: nothing says they are grazing.
     """
-    from scanner.scanning.stitch import incidence_cosines
 
     cos_view, cos_laser = incidence_cosines(
         points, frame_pos, base_from_cam, options.laser_origin_mm, options.incidence_radius_mm
@@ -464,6 +466,7 @@ def scan_session(
     work_dir: str | os.PathLike[str] | None = None,
     progress: bool = True,
     keep_work: bool | None = None,
+    calibration_path: str | os.PathLike[str] | None = None,
 ) -> ScanResult:
     """Scan one or several sweep sessions into one base-frame cloud (mm), written to ``out_path``.
 
@@ -482,6 +485,9 @@ def scan_session(
         tqdm progress bar on standard error.
     keep_work : bool, optional
         Keep the saved profiles after success (default: keep only when ``work_dir`` is given).
+    calibration_path : path, optional
+        The file ``calibration`` was read from, for the cloud's provenance (a path given as
+        ``calibration`` is recorded by itself).
 
     Returns
     -------
@@ -492,21 +498,16 @@ def scan_session(
     InputError
         Bad input, before any extraction (see :func:`check_scan_inputs`).
     """
-    from scanner.formats.clouds import write_cloud
-    from scanner.scanning.stitch import build_cloud, filter_cloud, refine_sweeps
-    from scanner.scanning.triangulate import Triangulator
 
     t0 = time.perf_counter()
     options = options or ScanOptions()
-    cal_path: Path | None = None
+    cal_path = None if calibration_path is None else Path(calibration_path)
     if not isinstance(calibration, Calibration):
         cal_path = Path(calibration)
         calibration = read_calibration(cal_path)
     sessions = _as_sessions(session_or_sessions)
     check_scan_inputs(sessions, calibration)
     if out_path is not None:
-        from scanner.formats.clouds import _check_format
-
         _check_format(Path(out_path))
 
     # Global frame list and sweep ids: (session, sweep column) pairs numbered in order.

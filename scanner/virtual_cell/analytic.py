@@ -14,6 +14,10 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.special import erf
 
+from scanner.core.conventions import invert_transform, make_transform
+from scanner.formats.calibration_file import Calibration, LightPlane
+from scanner.formats.session import Frame, write_session
+
 __all__ = ["StripeSegment", "TableStepScene", "render_stripes", "write_table_step_sweep"]
 
 
@@ -140,9 +144,6 @@ class TableStepScene:
     def calibration(self):  # -> scanner.formats.calibration_file.Calibration
         from scipy.spatial.transform import Rotation
 
-        from scanner.core.conventions import make_transform
-        from scanner.formats.calibration_file import Calibration, LightPlane
-
         K = np.array(
             [
                 [self.focal_px, 0.0, (self.width - 1) / 2.0],
@@ -217,9 +218,6 @@ def write_table_step_sweep(
     from pathlib import Path
 
     import cv2
-
-    from scanner.core.conventions import invert_transform
-    from scanner.formats.session import Frame, write_session
 
     scene = scene or TableStepScene()
     cal = scene.calibration()

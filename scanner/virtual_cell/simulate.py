@@ -46,6 +46,7 @@ from scanner.virtual_cell.poses import (
     target_extent_mm,
 )
 from scanner.virtual_cell.render import Laser, Scene, ray_map, stripe_truth
+from scanner.virtual_cell.scene import object_from_euler
 from scanner.virtual_cell.truth import (
     CellTruth,
     FrameTruth,
@@ -276,7 +277,6 @@ def _run_jobs(jobs: list[_Job], workers: int) -> Iterator[tuple]:
 
 def _objects_truth(cell: CellConfig) -> tuple[list[ObjectTruth], dict]:
     objs = [ObjectTruth("table", "plane", {"normal": [0.0, 0.0, 1.0], "d": -cell.sweep.table_z_mm})]
-    from scanner.virtual_cell.scene import object_from_euler
 
     spheres = []
     for ob in cell.sweep.objects:

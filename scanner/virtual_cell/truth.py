@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 
 from scanner.core.camera import CameraModel
 from scanner.core.fileio import InputError
-from scanner.core.targets import TargetSpec, parse_target
+from scanner.core.targets import TargetSpec, parse_target, target_to_json
 from scanner.formats.calibration_file import Calibration, LightPlane
 
 __all__ = [
@@ -208,7 +208,6 @@ class CellTruth:
 
 
 def truth_to_json(truth: CellTruth) -> dict[str, Any]:
-    from scanner.core.targets import target_to_json
 
     return {
         "format": FORMAT,

@@ -6,6 +6,8 @@ import pytest
 
 from metrology.ef_check import run_ef_check
 from scanner.app.cli import main
+from scanner.formats.calibration_file import read_calibration
+from scanner.formats.session import read_session
 from scanner.virtual_cell.truth import read_truth
 
 pytestmark = pytest.mark.slow
@@ -20,7 +22,8 @@ def test_ef_with_the_true_calibration_measures_the_diameter(modern_check, tmp_pa
     # With the truth as calibration only the image measurement is left: E and F must land on
     # the ring to well under the 0.03 mm the modern cell is allowed in total.
     result = run_ef_check(
-        modern_check / "check", modern_check / "calibration_true.json", tmp_path / "ef.json"
+        read_session(modern_check / "check"),
+        read_calibration(modern_check / "calibration_true.json"),
     )
     truth = read_truth(modern_check)
     assert result.nominal_mm == pytest.approx(truth.target.ring_diameters_mm[-1])
@@ -62,7 +65,7 @@ def test_a_wrong_light_plane_shows_in_the_ef_error(modern_check, tmp_path):
     calib["light_plane"]["d"] += 1.0 * math.copysign(1.0, calib["light_plane"]["d"])
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps(calib))
-    result = run_ef_check(modern_check / "check", bad, None)
+    result = run_ef_check(read_session(modern_check / "check"), read_calibration(bad))
     assert result.mean_abs_error_mm > 0.1
 
 

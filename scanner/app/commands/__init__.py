@@ -1,19 +1,42 @@
 """One module per ``scanner`` sub-command.
 
 Each module defines ``register(subparsers)`` (adds its parser and sets ``func``) and the
-function that runs it. Work happens in the packages; these modules only parse arguments,
-report progress and print what a person needs.
+function that runs it. Work happens in :mod:`scanner.app.stages`; these modules only parse
+arguments, report progress and print what a person needs. The arguments several commands
+share are declared here once.
 """
 
-COMMAND_MODULES = (
-    "simulate",
-    "target",
-    "calibrate",
-    "check",
-    "scan",
-    "measure",
-    "acceptance",
-    "demo",
-    "serve",
-    "history",
-)
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+__all__ = ["add_calibration", "add_out", "add_session", "positive_int"]
+
+
+def positive_int(text: str) -> int:
+    """An argparse type: a whole number >= 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected >= 1, got {value}")
+    return value
+
+
+def add_session(p: argparse.ArgumentParser, kind: str) -> None:
+    p.add_argument("session", type=Path, help=f"{kind} session folder (scan-session/1)")
+
+
+def add_calibration(p: argparse.ArgumentParser, required: bool = True) -> None:
+    help_text = (
+        "calibration file (JSON)"
+        if required
+        else "calibration file the cloud was scanned with, when the cloud does not record it"
+    )
+    p.add_argument("--calibration", type=Path, required=required, help=help_text)
+
+
+def add_out(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument("--out", type=Path, required=True, help=what)

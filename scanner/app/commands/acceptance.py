@@ -11,6 +11,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from scanner.app import stages
+from scanner.app.commands import add_calibration
+
 EXIT_TEST_FAILED = 1
 
 
@@ -30,37 +33,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--out", type=Path, required=True, help="result to write (.json; .csv and .html beside)"
     )
-    p.add_argument(
-        "--calibration",
-        type=Path,
-        help="calibration file the cloud was scanned with, when the cloud does not record it",
-    )
+    add_calibration(p, required=False)
     p.add_argument("--strict", action="store_true", help="exit 1 when the test fails")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from metrology.acceptance import load_acceptance_spec, run_acceptance
-    from metrology.measure import load_cloud
-    from metrology.report import write_acceptance_report
-    from scanner.core.config import resolve_config
-    from scanner.core.fileio import InputError
-
-    if args.out.suffix.lower() != ".json":
-        raise InputError(
-            args.out, "--out: expected a .json file name (the .csv and .html go beside it)"
-        )
-    spec_path = resolve_config(args.spec, "plans")
-    spec = load_acceptance_spec(spec_path)
-    points, provenance = load_cloud(args.cloud)
-    if args.calibration is not None:
-        if not args.calibration.is_file():
-            raise InputError(args.calibration, "calibration file not found")
-        provenance = {**provenance, "calibration": str(args.calibration.resolve())}
-    result = run_acceptance(points, spec, provenance=provenance)
-    result.cloud_path = str(args.cloud)
-    result.spec_path = str(spec_path)
-    paths = write_acceptance_report(result, args.out)
+    run_ = stages.acceptance(args.cloud, args.spec, args.out, calibration_path=args.calibration)
+    result = run_.result
     print(f"acceptance: {result.summary()}")
     for c in result.characteristics:
         if not c.passed:
@@ -69,5 +49,5 @@ def run(args: argparse.Namespace) -> int:
                 f"  {c.row.final_status.upper()}: {c.symbol} {c.artefact} {value} "
                 f"(MPE {c.mpe_mm * 1000:.1f} µm){' - ' + c.row.note if c.value_mm is None else ''}"
             )
-    print(f"wrote {paths['json']}, {paths['csv'].name}, {paths['html'].name}")
+    print(f"wrote {run_.json_path}, {run_.csv_path.name}, {run_.html_path.name}")
     return EXIT_TEST_FAILED if args.strict and not result.passed else 0

@@ -1,7 +1,7 @@
 """`scanner calibrate SESSION --out CALIB.json`: intrinsics, light plane and hand-eye.
 
-Writes the calibration file (``scan-calibration/1``, atomically) and an HTML calibration
-report under ``--report-dir``.
+Writes the calibration file (``scan-calibration/1``) and its HTML report beside it
+(``CALIB.html``), together or not at all.
 """
 
 from __future__ import annotations
@@ -9,6 +9,9 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+
+from scanner.app import stages
+from scanner.app.commands import add_out, add_session
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -18,8 +21,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Calibrate intrinsics, the laser light plane and the hand-eye transform "
         "(flange_from_cam) from a scan-session/1 calibration folder.",
     )
-    p.add_argument("session", type=Path, help="calibration session folder")
-    p.add_argument("--out", type=Path, required=True, help="calibration file to write (JSON)")
+    add_session(p, "calibration")
+    add_out(p, "calibration file to write (JSON)")
     p.add_argument(
         "--method",
         choices=("default", "paper"),
@@ -28,7 +31,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         "(concentric-circles target only)",
     )
     p.add_argument(
-        "--report-dir", type=Path, default=Path("reports"), help="folder of the HTML report"
+        "--report", type=Path, default=None, help="HTML report (default: beside --out, .html)"
+    )
+    p.add_argument(
+        "--report-dir",
+        type=Path,
+        default=None,
+        help="folder of the HTML report (named after --out); --report takes precedence",
     )
     p.add_argument("--no-report", action="store_true", help="do not write the HTML report")
     p.add_argument(
@@ -41,40 +50,37 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from calibration.pipeline import calibrate_session
-    from scanner.formats.calibration_file import write_calibration
-    from scanner.formats.session import read_session
-
-    session = read_session(args.session)
-    show = not args.quiet and sys.stderr.isatty()
+    report: Path | str | None = "beside"
+    if args.no_report:
+        report = None
+    elif args.report is not None:
+        report = args.report
+    elif args.report_dir is not None:
+        report = args.report_dir / Path(args.out).with_suffix(".html").name
 
     def stage(name: str) -> None:
         if not args.quiet:
             print(f"calibrate: {name} ...", file=sys.stderr, flush=True)
 
-    result = calibrate_session(
-        session,
+    run_ = stages.calibrate(
+        args.session,
+        args.out,
+        report=report,  # type: ignore[arg-type]
         method=args.method,
-        progress=show,
         refine_intrinsics=args.refine_intrinsics,
+        progress=not args.quiet and sys.stderr.isatty(),
         on_stage=stage,
     )
-    write_calibration(args.out, result.calibration)
-    q = result.calibration.quality
-    lp = q["light_plane"]
-    he = q["hand_eye"]
-    print(f"wrote {args.out}")
+    q = run_.quality
+    print(f"wrote {run_.calibration_path}")
     print(
-        f"  intrinsics RMS {q['intrinsics']['rms_px']:.3f} px; light plane RMS "
-        f"{lp['rms_mm'] * 1000:.1f} um ({len(lp['per_frame'])} frames); hand-eye "
-        f"{he['method']}, chain RMS {he['rms_px']:.3f} px"
+        f"  intrinsics RMS {q.intrinsics_rms_px:.3f} px; light plane RMS "
+        f"{(q.light_plane_rms_mm or float('nan')) * 1000:.1f} um ({q.light_plane_frames} frames); "
+        f"hand-eye {q.hand_eye_method}, chain RMS {q.hand_eye_rms_px:.3f} px"
     )
-    if not args.no_report:
-        from calibration.report import write_calibration_report
-
-        path = write_calibration_report(result, args.report_dir)
-        print(f"  report {path}")
-    for w in q["warnings"]:
+    if run_.report_path is not None:
+        print(f"  report {run_.report_path}")
+    for w in q.warnings:
         print(f"  warning: {w}")
-    print(f"verdict: {q['verdict']}")
+    print(f"verdict: {q.verdict}")
     return 0

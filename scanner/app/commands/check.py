@@ -5,6 +5,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from scanner.app import stages
+from scanner.app.commands import add_calibration, add_out, add_session
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -13,9 +16,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="The paper's EF check on a `check` session: |EF| against the nominal "
         "diameter per laser image, and the spread of the target centre O in the base frame.",
     )
-    p.add_argument("session", type=Path, help="capture session folder (kind: check)")
-    p.add_argument("--calibration", type=Path, required=True, help="calibration file (JSON)")
-    p.add_argument("--out", type=Path, required=True, help="result file to write (JSON)")
+    add_session(p, "check")
+    add_calibration(p)
+    add_out(p, "result file to write (JSON)")
     p.add_argument(
         "--report",
         type=Path,
@@ -29,16 +32,19 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from metrology.ef_check import run_ef_check
-
-    report = args.report or args.out.with_suffix(".html")
-    result = run_ef_check(
-        args.session, args.calibration, args.out, report, progress=True, mode=args.mode
+    run_ = stages.check(
+        args.session,
+        args.calibration,
+        args.out,
+        report=args.report or "beside",
+        mode=args.mode,
+        progress=True,
     )
+    r = run_.result
     print(
-        f"EF check: {len(result.valid)}/{len(result.measurements)} frames, nominal {result.nominal_mm:.3f} mm, "
-        f"mean |error| {result.mean_abs_error_mm:.4f} mm ({100 * result.mean_rel_error:.4f} %), "
-        f"max {result.max_abs_error_mm:.4f} mm, spread of O {result.o_spread_mm:.4f} mm"
+        f"EF check: {len(r.valid)}/{len(r.measurements)} frames, nominal {r.nominal_mm:.3f} mm, "
+        f"mean |error| {r.mean_abs_error_mm:.4f} mm ({100 * r.mean_rel_error:.4f} %), "
+        f"max {r.max_abs_error_mm:.4f} mm, spread of O {r.o_spread_mm:.4f} mm"
     )
-    print(f"wrote {args.out} and {report}")
+    print(f"wrote {run_.out_path} and {run_.report_path}")
     return 0

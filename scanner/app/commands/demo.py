@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from scanner.app.demo import run_demo
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -39,8 +41,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from scanner.app.demo import run_demo
-
     result = run_demo(
         cell=args.cell,
         out_dir=args.out,
@@ -69,5 +69,10 @@ def run(args: argparse.Namespace) -> int:
     for name, m in f.get("measurements", {}).items():
         actual = "-" if m["actual"] is None else f"{m['actual']:.4f}"
         print(f"  {name}: {actual} (nominal {m['nominal']}) {m['status'].upper()}")
+    for name, c in f.get("acceptance", {}).items():
+        value = "n/a" if c["value_mm"] is None else f"{c['value_mm'] * 1000:.1f} µm"
+        print(
+            f"  acceptance {name}: {value} (MPE {c['mpe_mm'] * 1000:.1f} µm) {c['status'].upper()}"
+        )
     print(f"report: {result.index_html}")
     return 0

@@ -5,6 +5,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from scanner.app.plc.config import load_plc_config
+from scanner.app.plc.history import JobHistory
+from scanner.core.fileio import InputError
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -25,9 +29,6 @@ def _fmt(value: float | None) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from scanner.app.plc.config import load_plc_config
-    from scanner.app.plc.history import JobHistory
-    from scanner.core.fileio import InputError
 
     if args.limit < 1:
         raise ValueError(f"--limit: expected >= 1, got {args.limit}")

@@ -11,6 +11,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from scanner.app import stages
+from scanner.app.commands import add_calibration
+
 EXIT_OUT_OF_TOLERANCE = 1
 
 
@@ -30,11 +33,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--out", type=Path, required=True, help="report to write (.json; .csv and .html beside)"
     )
-    p.add_argument(
-        "--calibration",
-        type=Path,
-        help="calibration file the cloud was scanned with, when the cloud does not record it",
-    )
+    add_calibration(p, required=False)
     p.add_argument(
         "--strict", action="store_true", help="exit 1 when a measurement fails or cannot be made"
     )
@@ -42,27 +41,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from metrology.measure import load_cloud, measure_cloud
-    from metrology.plan import load_plan
-    from metrology.report import write_measurement_report
-    from scanner.core.config import resolve_config
-    from scanner.core.fileio import InputError
-
-    if args.out.suffix.lower() != ".json":
-        raise InputError(
-            args.out, "--out: expected a .json file name (the .csv and .html go beside it)"
-        )
-    plan_path = resolve_config(args.plan, "plans")
-    plan = load_plan(plan_path)
-    points, provenance = load_cloud(args.cloud)
-    if args.calibration is not None:
-        if not args.calibration.is_file():
-            raise InputError(args.calibration, "calibration file not found")
-        provenance = {**provenance, "calibration": str(args.calibration.resolve())}
-    report = measure_cloud(points, plan, provenance=provenance)
-    report.cloud_path = str(args.cloud)
-    report.plan_path = str(plan_path)
-    paths = write_measurement_report(report, args.out)
+    run_ = stages.measure(args.cloud, args.plan, args.out, calibration_path=args.calibration)
+    report = run_.report
     print(f"measure: {report.summary()}")
     for m in report.measurements:
         if m.row.final_status not in ("pass", "n/a"):
@@ -70,5 +50,5 @@ def run(args: argparse.Namespace) -> int:
                 f"  {m.row.final_status.upper()}: {m.row.name}"
                 + (f" ({m.row.note})" if m.row.note else "")
             )
-    print(f"wrote {paths['json']}, {paths['csv'].name}, {paths['html'].name}")
+    print(f"wrote {run_.json_path}, {run_.csv_path.name}, {run_.html_path.name}")
     return EXIT_OUT_OF_TOLERANCE if args.strict and not report.passed else 0

@@ -11,6 +11,10 @@ import argparse
 import sys
 from pathlib import Path
 
+from scanner.app import stages
+from scanner.app.commands import add_calibration, add_out
+from scanner.scanning.pipeline import ScanOptions
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -23,8 +27,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "sessions", type=Path, nargs="+", metavar="SESSION", help="sweep session folder(s)"
     )
-    p.add_argument("--calibration", type=Path, required=True, help="calibration file (JSON)")
-    p.add_argument("--out", type=Path, required=True, help="cloud to write: .ply, .pcd or .e57")
+    add_calibration(p)
+    add_out(p, "cloud to write: .ply, .pcd or .e57")
     p.add_argument(
         "--mode",
         choices=("fast", "precise"),
@@ -59,26 +63,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from scanner.core.fileio import InputError
-    from scanner.formats.calibration_file import read_calibration
-    from scanner.formats.clouds import FORMATS
-    from scanner.formats.session import read_session
-    from scanner.scanning.pipeline import ScanOptions, check_scan_inputs, scan_session
-
-    # Everything that can be refused is refused here, before any image is decoded.
-    if args.out.suffix.lower() not in FORMATS:
-        raise InputError(
-            args.out,
-            f"expected a {', '.join(FORMATS)} file name, got {args.out.suffix or 'none'!r}",
-        )
     if args.voxel_mm is not None and args.voxel_mm <= 0:
         raise ValueError(f"--voxel-mm: expected > 0, got {args.voxel_mm}")
+    if args.normals_mm is not None and args.normals_mm <= 0:
+        raise ValueError(f"--normals-mm: expected > 0, got {args.normals_mm}")
+    if args.outliers < 0:
+        raise ValueError(f"--outliers: expected >= 0 neighbours, got {args.outliers}")
     if args.workers < 1:
         raise ValueError(f"--workers: expected >= 1, got {args.workers}")
-    calibration = read_calibration(args.calibration)
-    sessions = [read_session(s) for s in args.sessions]
-    check_scan_inputs(sessions, calibration)
-
     options = ScanOptions(
         mode=args.mode,
         voxel_mm=args.voxel_mm,
@@ -87,16 +79,17 @@ def run(args: argparse.Namespace) -> int:
         icp=args.icp,
         workers=args.workers,
     )
-    result = scan_session(
-        sessions,
+    run_ = stages.scan(
+        args.sessions,
         args.calibration,
-        options,
-        out_path=args.out,
+        args.out,
+        options=options,
         work_dir=args.workdir,
         progress=not args.quiet,
     )
+    result = run_.result
     rate = result.n_points / result.seconds if result.seconds > 0 else 0.0
-    print(f"wrote {result.out_path}")
+    print(f"wrote {run_.out_path}")
     print(
         f"  {result.n_points} points from {result.n_frames} frames in {result.n_sweeps} "
         f"sweep(s), {result.seconds:.1f} s ({rate:,.0f} points/s), mode {options.mode}"

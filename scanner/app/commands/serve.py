@@ -10,6 +10,10 @@ import argparse
 import asyncio
 import sys
 
+from scanner.app.plc.config import load_plc_config
+from scanner.app.plc.registers import format_register_map
+from scanner.app.plc.service import serve
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -27,9 +31,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from scanner.app.plc.config import load_plc_config
-    from scanner.app.plc.registers import format_register_map
-    from scanner.app.plc.service import serve
 
     if args.print_map:
         print(format_register_map())

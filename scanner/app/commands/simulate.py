@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from scanner.app import stages
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -38,8 +40,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from scanner.virtual_cell.simulate import simulate_cell
-
     sessions = tuple(s.strip() for s in args.sessions.split(",") if s.strip())
     unknown = [s for s in sessions if s not in ("calibration", "check", "sweep")]
     if unknown or not sessions:
@@ -48,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
         )
     if args.sweep_frames is not None and args.sweep_frames < 1:
         raise ValueError(f"--sweep-frames: expected >= 1, got {args.sweep_frames}")
-    truth = simulate_cell(
+    truth = stages.simulate(
         args.cell,
         args.out,
         seed=args.seed,

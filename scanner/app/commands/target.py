@@ -9,6 +9,10 @@ from pathlib import Path
 
 from scanner.core.fileio import InputError
 from scanner.core.targets import TargetSpec, parse_target
+from scanner.virtual_cell.capture import printed_target
+from scanner.virtual_cell.cell import load_cell, load_target
+from scanner.virtual_cell.drawing import save_target_drawing
+from scanner.virtual_cell.scene import PrintedTarget
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -32,8 +36,6 @@ def _spec_from_file(path: Path) -> TargetSpec:
     if not path.is_file():
         raise InputError(path, "target spec file not found")
     if path.suffix.lower() == ".toml":
-        from scanner.virtual_cell.cell import load_target
-
         return load_target(path)
     try:
         obj = json.loads(path.read_text(encoding="utf-8"))
@@ -48,10 +50,6 @@ def _spec_from_file(path: Path) -> TargetSpec:
 
 
 def run(args: argparse.Namespace) -> int:
-    from scanner.virtual_cell.capture import printed_target
-    from scanner.virtual_cell.cell import load_cell
-    from scanner.virtual_cell.drawing import save_target_drawing
-    from scanner.virtual_cell.scene import PrintedTarget
 
     if args.spec is not None:
         printed = PrintedTarget(_spec_from_file(args.spec))

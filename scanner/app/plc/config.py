@@ -144,14 +144,19 @@ class Recipe:
             raise ValueError(f"number: expected 1..65535, got {self.number}")
 
 
+#: The name of the job runner that runs the real stages (:class:`scanner.app.plc.jobs.PipelineJobs`).
+BUILTIN_RUNNER = "pipeline"
+
+
 @dataclass(frozen=True)
 class JobsConfig:
-    """Which job runner the service uses: ``"package.module:factory"``, called with the config.
+    """Which job runner the service uses.
 
-    The default runs the real pipeline; tests and integrators may name their own.
+    ``"pipeline"`` (the default) runs the real stages; tests and integrators may name their
+    own as ``"package.module:factory"``, called with the config.
     """
 
-    runner: str = "scanner.app.plc.jobs:PipelineJobs"
+    runner: str = BUILTIN_RUNNER
     #: "process": each job in a worker process of its own (killable, no GIL contention with
     #: the server); "thread": on a thread of the service (cooperative cancellation only).
     worker: Literal["process", "thread"] = "process"
@@ -162,8 +167,11 @@ class JobsConfig:
         if self.kill_after_s < 0:
             raise ValueError(f"kill_after_s: expected >= 0, got {self.kill_after_s}")
         module, sep, attr = self.runner.partition(":")
-        if not sep or not module or not attr:
-            raise ValueError(f"runner: expected 'package.module:factory', got {self.runner!r}")
+        if self.runner != BUILTIN_RUNNER and (not sep or not module or not attr):
+            raise ValueError(
+                f"runner: expected {BUILTIN_RUNNER!r} or 'package.module:factory', "
+                f"got {self.runner!r}"
+            )
 
 
 @dataclass(frozen=True)

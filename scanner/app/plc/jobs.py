@@ -3,9 +3,9 @@
 The service does not know how a check, a scan or a calibration is computed. It calls a
 :class:`JobRunner`: three functions taking a :class:`JobContext` and returning a
 :class:`JobOutcome` or raising :class:`JobError` with an :class:`ErrorCode`. The default
-runner, :class:`PipelineJobs`, captures a session from a :class:`SessionSource` and calls the
-pipeline (imported lazily, so the service starts even while a stage is missing, and a missing
-stage is a recorded job error rather than a crash). Tests inject fake runners.
+runner, :class:`PipelineJobs`, captures a session from a :class:`SessionSource` and runs the
+stages of :mod:`scanner.app.stages`, the same functions the command line and the demo call.
+Tests inject fake runners.
 
 Jobs run on a worker thread. Cancellation is cooperative: the service sets
 ``ctx.cancel`` (watchdog, job timeout, shutdown) and a job calls
@@ -15,7 +15,6 @@ Jobs run on a worker thread. Cancellation is cooperative: the service sets
 from __future__ import annotations
 
 import datetime as dt
-import importlib
 import json
 import logging
 import os
@@ -24,8 +23,9 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
+from scanner.app import stages
 from scanner.app.plc.config import (
     CalibrationGate,
     CheckTolerances,
@@ -34,7 +34,10 @@ from scanner.app.plc.config import (
     SourceConfig,
 )
 from scanner.app.plc.registers import ErrorCode
-from scanner.core.fileio import InputError, write_json_atomic
+from scanner.core.config import resolve_config
+from scanner.core.fileio import InputError
+from scanner.formats.calibration_file import CalibrationQuality
+from scanner.formats.layout import JobLayout
 
 __all__ = [
     "FolderSource",
@@ -53,6 +56,8 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+T = TypeVar("T")
 
 
 class JobError(Exception):
@@ -184,14 +189,10 @@ class VirtualCellSource:
     workers: int = 1
 
     def acquire(self, kind: str, ctx: JobContext, recipe: Recipe | None = None) -> Path:
-        try:
-            from scanner.virtual_cell.simulate import simulate_cell
-        except ImportError as exc:
-            raise JobError(ErrorCode.INTERNAL, f"virtual cell not available: {exc}") from None
         cell = recipe.cell if recipe is not None and recipe.cell else self.cell
         out = ctx.work_dir / "capture"
         _call(
-            simulate_cell,
+            stages.simulate,
             cell,
             out,
             seed=self.seed + ctx.job_id,
@@ -248,28 +249,18 @@ def install_calibration(
 # The pipeline jobs
 
 
-def _call(func: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
-    """Call a pipeline function, turning bad input into the job error the PLC reads."""
+def _call(func: Callable[..., T], *args: Any, **kwargs: Any) -> T:
+    """Call a stage, turning bad input into the job error the PLC reads."""
     try:
         return func(*args, **kwargs)
     except (JobError, JobCancelled):
         raise
     except (InputError, ValueError, FileNotFoundError) as exc:
-        # The pipeline reports bad input (too few frames, target not found...) as ValueError.
+        # The stages report bad input (too few frames, target not found...) as ValueError.
         raise JobError(ErrorCode.BAD_INPUT, " ".join(str(exc).split())) from exc
 
 
-def _stage(module: str, name: str) -> Callable[..., Any]:
-    """A pipeline function, imported now; a missing stage is a recorded job error."""
-    try:
-        return getattr(importlib.import_module(module), name)
-    except (ImportError, AttributeError) as exc:
-        raise JobError(
-            ErrorCode.INTERNAL, f"pipeline stage {module}.{name} not available: {exc}"
-        ) from None
-
-
-def _mm_to_um(value: Any) -> float | None:
+def _mm_to_um(value: float | None) -> float | None:
     return None if value is None else float(value) * 1000.0
 
 
@@ -280,7 +271,10 @@ def check_passed(results_um: tuple[float | None, ...], tol: CheckTolerances) -> 
 
 
 class PipelineJobs:
-    """The real jobs: capture a session, then call the pipeline stages.
+    """The real jobs: capture a session, then run the stages (:mod:`scanner.app.stages`).
+
+    Each job writes its artefacts into its own folder under the names of
+    :class:`~scanner.formats.layout.JobLayout`, as the demo does.
 
     Parameters
     ----------
@@ -309,20 +303,19 @@ class PipelineJobs:
         calibration = self._require_calibration()
         ctx.session_path = self.source.acquire("check", ctx)
         ctx.check_cancelled()
-        run_ef_check = _stage("metrology.ef_check", "run_ef_check")
-        out = ctx.work_dir / "ef_check.json"
-        report = ctx.work_dir / "ef_check.html"
-        result = _call(run_ef_check, ctx.session_path, calibration, out, report_path=report)
+        job = JobLayout(ctx.work_dir)
+        run = _call(stages.check, ctx.session_path, calibration, job.check)
+        result = run.result
         results = (
-            _mm_to_um(getattr(result, "mean_abs_error_mm", None)),
-            _mm_to_um(getattr(result, "max_abs_error_mm", None)),
-            _mm_to_um(getattr(result, "o_spread_mm", None)),
+            _mm_to_um(result.mean_abs_error_mm),
+            _mm_to_um(result.max_abs_error_mm),
+            _mm_to_um(result.o_spread_mm),
         )
         return JobOutcome(
             passed=check_passed(results, self.config.check),
             results_um=results,
-            report_path=report if report.is_file() else out,
-            artefacts=(out,),
+            report_path=run.report_path or run.out_path,
+            artefacts=(run.out_path,),
         )
 
     def scan(self, ctx: JobContext) -> JobOutcome:
@@ -339,19 +332,14 @@ class PipelineJobs:
                 f"expected a recipe number ({known}), got {ctx.parameter}",
             )
         calibration = self._require_calibration()
-        from scanner.core.config import resolve_config
-
         plan = _call(resolve_config, recipe.plan, "plans")
         ctx.session_path = self.source.acquire("sweep", ctx, recipe)
         ctx.check_cancelled()
-        scan_session = _stage("scanner.scanning.pipeline", "scan_session")
-        cloud = ctx.work_dir / "cloud.ply"
-        _call(scan_session, ctx.session_path, calibration, out_path=cloud, progress=False)
+        job = JobLayout(ctx.work_dir)
+        _call(stages.scan, [ctx.session_path], calibration, job.cloud)
         ctx.check_cancelled()
-        measure_cloud = _stage("metrology.measure", "measure_cloud")
-        report = _call(measure_cloud, cloud, plan)
-        report_path = ctx.work_dir / "measurement.json"
-        write_json_atomic(report_path, report.to_json())
+        run = _call(stages.measure, job.cloud, plan, job.measure, calibration_path=calibration)
+        report = run.report
         figures: list[float | None] = [
             None if r.actual is None else float(r.actual) * 1000.0 for r in report.rows[:3]
         ]
@@ -359,8 +347,8 @@ class PipelineJobs:
         return JobOutcome(
             passed=bool(report.passed),
             results_um=(figures[0], figures[1], figures[2]),
-            report_path=report_path,
-            artefacts=(cloud, report_path),
+            report_path=run.html_path,
+            artefacts=(job.cloud, run.json_path),
             message=report.summary(),
         )
 
@@ -371,52 +359,41 @@ class PipelineJobs:
         """
         ctx.session_path = self.source.acquire("calibration", ctx)
         ctx.check_cancelled()
-        calibrate_session = _stage("calibration.pipeline", "calibrate_session")
-        from scanner.formats.calibration_file import write_calibration
-        from scanner.formats.session import read_session
-
-        session = _call(read_session, ctx.session_path)
-        result = _call(calibrate_session, session, progress=False)
+        job = JobLayout(ctx.work_dir)
+        run = _call(stages.calibrate, ctx.session_path, job.calibration)
         ctx.check_cancelled()
-        new = ctx.work_dir / "calibration.json"
-        write_calibration(new, result.calibration)
-        quality = result.calibration.quality
-        passed, reason, plane_um = calibration_gate(quality, self.config.calibration_gate)
+        passed, reason, plane_um = calibration_gate(run.quality, self.config.calibration_gate)
         results = (plane_um, None, None)
         if not passed:
             return JobOutcome(
                 passed=False,
                 results_um=results,
-                artefacts=(new,),
+                artefacts=(run.calibration_path,),
                 error=ErrorCode.QUALITY_GATE,
                 message=reason,
             )
-        kept = install_calibration(new, self.calibration_path)
+        kept = install_calibration(run.calibration_path, self.calibration_path)
         log.info("calibration installed at %s (previous kept as %s)", self.calibration_path, kept)
-        return JobOutcome(passed=True, results_um=results, report_path=new, artefacts=(new,))
+        return JobOutcome(
+            passed=True,
+            results_um=results,
+            report_path=run.report_path or run.calibration_path,
+            artefacts=(run.calibration_path,),
+        )
 
 
 def calibration_gate(
-    quality: dict[str, Any], gate: CalibrationGate
+    quality: CalibrationQuality, gate: CalibrationGate
 ) -> tuple[bool, str, float | None]:
     """Judge a calibration's quality record; ``(passed, reason, light-plane RMS in µm)``.
 
     A figure missing from the record fails the gate (it cannot be judged).
     """
-
-    def figure(section: str, key: str) -> float | None:
-        part = quality.get(section) if isinstance(quality, dict) else None
-        value = part.get(key) if isinstance(part, dict) else None
-        return float(value) if isinstance(value, int | float) else None
-
-    intrinsics_px = figure("intrinsics", "rms_px")
-    plane_mm = figure("light_plane", "rms_mm")
-    hand_eye_px = figure("hand_eye", "rms_px")
-    plane_um = None if plane_mm is None else plane_mm * 1000.0
+    plane_um = _mm_to_um(quality.light_plane_rms_mm)
     checks = (
-        ("intrinsics RMS", intrinsics_px, gate.max_intrinsics_rms_px, "px"),
+        ("intrinsics RMS", quality.intrinsics_rms_px, gate.max_intrinsics_rms_px, "px"),
         ("light-plane RMS", plane_um, gate.max_light_plane_rms_um, "um"),
-        ("hand-eye RMS", hand_eye_px, gate.max_hand_eye_rms_px, "px"),
+        ("hand-eye RMS", quality.hand_eye_rms_px, gate.max_hand_eye_rms_px, "px"),
     )
     for name, value, limit, unit in checks:
         if value is None:

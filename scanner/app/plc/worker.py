@@ -29,8 +29,15 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
-from scanner.app.plc.config import PlcConfig
-from scanner.app.plc.jobs import JobCancelled, JobContext, JobError, JobOutcome, JobRunner
+from scanner.app.plc.config import BUILTIN_RUNNER, PlcConfig
+from scanner.app.plc.jobs import (
+    JobCancelled,
+    JobContext,
+    JobError,
+    JobOutcome,
+    JobRunner,
+    PipelineJobs,
+)
 from scanner.app.plc.registers import ErrorCode
 
 __all__ = [
@@ -56,10 +63,18 @@ def kill_job_processes() -> int:
         procs = [p for p in _LIVE if p.is_alive()]
     for proc in procs:
         log.warning("killing job process %s (pid %s)", proc.name, proc.pid)
-        proc.kill()
+        _kill_group(proc)
     for proc in procs:
         proc.join(5.0)
     return len(procs)
+
+
+def _kill_group(proc: multiprocessing.process.BaseProcess) -> None:
+    """Kill a job process and the pool workers it started (its process group)."""
+    try:
+        os.killpg(proc.pid, signal.SIGKILL)  # type: ignore[arg-type]
+    except (AttributeError, ProcessLookupError, PermissionError, TypeError):
+        proc.kill()
 
 
 class WorkerError(Exception):
@@ -67,7 +82,10 @@ class WorkerError(Exception):
 
 
 def load_runner(spec: str, config: PlcConfig) -> JobRunner:
-    """Build the job runner named ``"package.module:factory"``, called with the config."""
+    """Build the job runner ``spec``: ``"pipeline"`` (the real stages) or a plug-in's
+    ``"package.module:factory"``, called with the config."""
+    if spec == BUILTIN_RUNNER:
+        return PipelineJobs(config)
     module_name, sep, attr = spec.partition(":")
     if not sep or not module_name or not attr:
         raise ValueError(f"expected a runner as 'package.module:factory', got {spec!r}")
@@ -100,6 +118,10 @@ def _child_main(
     config: PlcConfig, method: str, ctx: JobContext, conn: Connection, parent: int, level: int
 ) -> None:
     _exit_with_parent(parent)
+    # The job and the worker pools its stages start form one process group, so that a kill
+    # reaches them all (no pool worker outlives a killed job).
+    if hasattr(os, "setpgrp"):
+        os.setpgrp()
     # The service decides when a job stops (it cancels, then kills): Ctrl-C on the terminal or
     # SIGTERM to the whole control group must not kill the job behind its back.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -146,7 +168,10 @@ def run_in_process(
         target=_child_main,
         args=(config, method, ctx, sender, os.getpid(), logging.getLogger().getEffectiveLevel()),
         name=f"plc-job-{ctx.job_id}",
-        daemon=True,
+        # Not a daemon: a job's stages start worker pools of their own, which a daemonic
+        # process may not. The service still never leaves it behind: the child watches its
+        # parent, and the service kills the job's whole process group when it stops.
+        daemon=False,
     )
     proc.start()
     with _LIVE_LOCK:
@@ -168,13 +193,13 @@ def run_in_process(
                 cancelled_at = cancelled_at or time.monotonic()
                 if time.monotonic() - cancelled_at > kill_after_s:
                     log.warning("job %d did not stop: killing its process", ctx.job_id)
-                    proc.kill()
+                    _kill_group(proc)
                     break
     finally:
         receiver.close()
         proc.join(5.0)
         if proc.is_alive():
-            proc.kill()
+            _kill_group(proc)
             proc.join(5.0)
         with _LIVE_LOCK:
             _LIVE.discard(proc)

@@ -4,8 +4,7 @@ import pytest
 from calibration.detection.concentric import detect_concentric
 from calibration.detection.detect import detect_target
 from scanner.core.conventions import transform_points
-
-from .synth_concentric import demo_target, look_at_pose, render
+from tests.calibration.synth_concentric import demo_target, look_at_pose, render
 
 SIZE = (800, 640)
 K = np.array([[1300.0, 0.0, 405.0], [0.0, 1298.0, 318.0], [0.0, 0.0, 1.0]])

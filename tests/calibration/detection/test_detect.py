@@ -4,8 +4,7 @@ import pytest
 from calibration.detection.detect import detect_target
 from calibration.detection.observations import TargetObservation
 from scanner.core.images import to_gray_float
-
-from .synth_concentric import demo_target
+from tests.calibration.synth_concentric import demo_target
 
 
 def test_to_gray_float_scales_8_and_16_bit_and_colour():

@@ -9,8 +9,7 @@ from calibration.intrinsics import calibrate_intrinsics
 from scanner.core.conventions import transform_points
 from scanner.core.images import load_gray_image
 from scanner.core.targets import ChessboardTarget, CircleGridTarget
-
-from .synth_concentric import look_at_pose, render
+from tests.calibration.synth_concentric import look_at_pose, render
 
 K = np.array([[1300.0, 0.0, 405.0], [0.0, 1298.0, 318.0], [0.0, 0.0, 1.0]])
 BOARD = ChessboardTarget(inner_corners=(9, 6), square_mm=12.0)

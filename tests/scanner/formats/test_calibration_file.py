@@ -7,6 +7,7 @@ from scanner.core.conventions import make_transform, orthonormalize
 from scanner.core.fileio import InputError
 from scanner.formats.calibration_file import (
     Calibration,
+    CalibrationQuality,
     LightPlane,
     read_calibration,
     write_calibration,
@@ -49,7 +50,8 @@ def test_calibration_file_round_trips(tmp_path):
     np.testing.assert_allclose(back.flange_from_cam, calib.flange_from_cam)
     np.testing.assert_allclose(back.light_plane.normal, calib.light_plane.normal)
     assert back.light_plane.d == pytest.approx(calib.light_plane.d)
-    assert back.quality == {"method": "paper"}
+    assert back.quality.record == {"method": "paper"}
+    assert back.quality.method == "paper" and back.quality.intrinsics_rms_px is None
     obj = json.loads((tmp_path / "calib.json").read_text())
     assert obj["format"] == "scan-calibration/1"
     assert set(obj) >= {"camera", "light_plane", "flange_from_cam", "quality"}
@@ -84,7 +86,7 @@ def test_failed_write_keeps_the_previous_file(tmp_path):
     write_calibration(path, paper_calibration())
     before = path.read_text()
     bad = paper_calibration()
-    bad.quality = {"not_json": object()}
+    bad.quality = CalibrationQuality.from_json({"not_json": object()})
     with pytest.raises(TypeError):
         write_calibration(path, bad)
     assert path.read_text() == before
@@ -103,7 +105,9 @@ def test_written_files_get_ordinary_permissions(tmp_path):
 
 def test_undetermined_quality_figures_are_written_as_null(tmp_path):
     calib = paper_calibration()
-    calib.quality = {"std": np.array([0.1, np.nan]), "rms": float("inf")}
+    calib.quality = CalibrationQuality.from_json(
+        {"std": np.array([0.1, np.nan]), "rms": float("inf")}
+    )
     write_calibration(tmp_path / "c.json", calib)
     assert json.loads((tmp_path / "c.json").read_text())["quality"] == {
         "std": [0.1, None],

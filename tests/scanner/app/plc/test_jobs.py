@@ -9,6 +9,7 @@ from types import SimpleNamespace
 
 import pytest
 
+from scanner.app import stages
 from scanner.app.plc.config import (
     CalibrationGate,
     CheckTolerances,
@@ -27,6 +28,7 @@ from scanner.app.plc.jobs import (
     install_calibration,
 )
 from scanner.app.plc.registers import ErrorCode
+from scanner.formats.calibration_file import CalibrationQuality
 
 
 def _session(root: Path, name: str, kind: str, mtime: float | None) -> Path:
@@ -116,37 +118,42 @@ def test_calibration_gate_judges_the_quality_record():
         "light_plane": {"rms_mm": 0.012},
         "hand_eye": {"rms_px": 0.4},
     }
-    assert calibration_gate(good, gate) == (True, "", pytest.approx(12.0))
-    bad = {**good, "light_plane": {"rms_mm": 0.08}}
+    assert calibration_gate(CalibrationQuality.from_json(good), gate) == (
+        True,
+        "",
+        pytest.approx(12.0),
+    )
+    bad = CalibrationQuality.from_json({**good, "light_plane": {"rms_mm": 0.08}})
     passed, reason, plane_um = calibration_gate(bad, gate)
     assert not passed and "light-plane RMS 80 um over the limit 50 um" in reason
     assert plane_um == pytest.approx(80.0)
-    passed, reason, _ = calibration_gate({"intrinsics": {"rms_px": 0.2}}, gate)
+    partial = CalibrationQuality.from_json({"intrinsics": {"rms_px": 0.2}})
+    passed, reason, _ = calibration_gate(partial, gate)
     assert not passed and "missing" in reason
 
 
 def _fake_pipeline(monkeypatch: pytest.MonkeyPatch, quality: dict, rows: list) -> None:
-    import scanner.app.plc.jobs as jobs_module
-    import scanner.formats.calibration_file
-    import scanner.formats.session
+    """Stand-in stages: the jobs' own logic (gate, install, figures) is what is tested here."""
 
-    def write_calibration(path: Path, calibration: object) -> None:
-        Path(path).write_text("new", "utf-8")
+    def calibrate(session: Path, out: Path, **_: object) -> SimpleNamespace:
+        Path(out).write_text("new", "utf-8")
+        return SimpleNamespace(
+            quality=CalibrationQuality.from_json(quality), calibration_path=out, report_path=None
+        )
 
-    def scan_session(session: Path, calibration: Path, out_path: Path, progress: bool) -> None:
-        Path(out_path).write_text("ply", "utf-8")
+    def scan(sessions: list[Path], calibration: Path, out: Path, **_: object) -> None:
+        Path(out).write_text("ply", "utf-8")
 
-    report = SimpleNamespace(rows=rows, passed=True, to_json=lambda: {}, summary=lambda: "PASS")
-    stages = {
-        "calibrate_session": lambda session, progress: SimpleNamespace(
-            calibration=SimpleNamespace(quality=quality)
-        ),
-        "scan_session": scan_session,
-        "measure_cloud": lambda cloud, plan: report,
-    }
-    monkeypatch.setattr(jobs_module, "_stage", lambda module, name: stages[name])
-    monkeypatch.setattr(scanner.formats.calibration_file, "write_calibration", write_calibration)
-    monkeypatch.setattr(scanner.formats.session, "read_session", lambda path: path)
+    report = SimpleNamespace(rows=rows, passed=True, summary=lambda: "PASS")
+
+    def measure(cloud: Path, plan: Path, out: Path, **_: object) -> SimpleNamespace:
+        for path in (out, out.with_suffix(".html")):
+            path.write_text("{}", "utf-8")
+        return SimpleNamespace(report=report, json_path=out, html_path=out.with_suffix(".html"))
+
+    monkeypatch.setattr(stages, "calibrate", calibrate)
+    monkeypatch.setattr(stages, "scan", scan)
+    monkeypatch.setattr(stages, "measure", measure)
 
 
 GOOD = {"intrinsics": {"rms_px": 0.2}, "light_plane": {"rms_mm": 0.01}, "hand_eye": {"rms_px": 0.3}}

@@ -1,0 +1,423 @@
+"""The stage layer: each stage of the job run on files, once, for every caller.
+
+The command line, the demo, the PLC jobs and the batch runner call these functions and never
+chain the libraries themselves. A stage
+
+- takes paths (sessions, calibration, cloud, plan) and the paths it is to write,
+- reads and checks its inputs once, refusing bad input with a one-line :class:`InputError`
+  before any expensive work, and refusing an output that would replace an input,
+- writes all its artefacts together or none (:func:`commit_together`): a failed run leaves
+  what was there before,
+- records its provenance (program version, time, inputs with their digests) in what it
+  writes, and
+- returns a typed result holding the library's result and the paths written.
+
+The names of a job folder's artefacts are declared in :class:`scanner.formats.layout.JobLayout`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Literal
+
+from calibration.pipeline import CalibrationResult, calibrate_session
+from calibration.report import write_calibration_report
+from metrology.acceptance import AcceptanceResult, load_acceptance_spec, run_acceptance
+from metrology.ef_check import EFCheckResult, run_ef_check
+from metrology.ef_report import write_ef_report
+from metrology.measure import MeasurementReport, load_cloud, measure_cloud
+from metrology.plan import load_plan
+from metrology.report import write_acceptance_report, write_measurement_report
+from scanner import __version__
+from scanner.core.config import resolve_config
+from scanner.core.fileio import (
+    InputError,
+    check_outputs_apart,
+    commit_together,
+    write_json_atomic,
+)
+from scanner.formats.calibration_file import (
+    CalibrationQuality,
+    read_calibration,
+    write_calibration,
+)
+from scanner.formats.clouds import FORMATS
+from scanner.formats.layout import report_beside
+from scanner.formats.session import read_session
+from scanner.scanning.pipeline import ScanOptions, ScanResult, check_scan_inputs, scan_session
+from scanner.virtual_cell.simulate import simulate_cell
+from scanner.virtual_cell.truth import CellTruth
+
+__all__ = [
+    "AcceptanceRun",
+    "CalibrateRun",
+    "CheckRun",
+    "MeasureRun",
+    "ScanRun",
+    "StageClock",
+    "acceptance",
+    "calibrate",
+    "check",
+    "measure",
+    "provenance",
+    "scan",
+    "simulate",
+]
+
+
+# --------------------------------------------------------------------------------------------
+# provenance
+
+
+def _digest(path: Path) -> str | None:
+    """SHA-256 of a file (``None`` for a folder or a missing file)."""
+    if not path.is_file():
+        return None
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def provenance(stage: str, inputs: dict[str, Path | None]) -> dict[str, Any]:
+    """What produced an artefact: the stage, the program's version, when, and from what.
+
+    Files are recorded with their SHA-256; a session folder with its ``session.json``'s.
+    """
+    record: dict[str, Any] = {}
+    for name, path in inputs.items():
+        if path is None:
+            continue
+        p = Path(path).resolve()
+        marker = p / "session.json" if p.is_dir() else p
+        record[name] = {"path": str(p), "sha256": _digest(marker)}
+    return {
+        "stage": stage,
+        "scanner_version": __version__,
+        "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "inputs": record,
+    }
+
+
+def _require_suffix(path: Path, suffixes: Sequence[str], what: str) -> None:
+    if path.suffix.lower() not in suffixes:
+        raise InputError(
+            path,
+            f"{what}: expected a {', '.join(suffixes)} file name, got {path.suffix or 'none'!r}",
+        )
+
+
+# --------------------------------------------------------------------------------------------
+# simulate
+
+
+def simulate(
+    cell: str,
+    out_dir: Path,
+    *,
+    seed: int = 0,
+    target: str | None = None,
+    sweep_frames: int | None = None,
+    sessions: tuple[str, ...] = ("calibration", "check", "sweep"),
+    workers: int = 2,
+    progress: bool = False,
+) -> CellTruth:
+    """Capture sessions from the virtual cell into ``out_dir/<kind>/``, with their truth."""
+    if seed < 0:
+        raise ValueError(f"--seed: expected >= 0, got {seed}")
+    return simulate_cell(
+        cell,
+        out_dir,
+        seed=seed,
+        target=target,
+        sweep_frames=sweep_frames,
+        sessions=sessions,
+        workers=workers,
+        progress=progress,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# calibrate
+
+
+@dataclass(frozen=True)
+class CalibrateRun:
+    """A calibration written: the library's result and the files."""
+
+    result: CalibrationResult
+    calibration_path: Path
+    report_path: Path | None
+
+    @property
+    def quality(self) -> CalibrationQuality:
+        return self.result.calibration.quality
+
+
+def calibrate(
+    session_dir: Path,
+    out: Path,
+    *,
+    report: Path | Literal["beside"] | None = "beside",
+    method: Literal["default", "paper"] = "default",
+    refine_intrinsics: bool = False,
+    progress: bool = False,
+    on_stage: Callable[[str], None] | None = None,
+) -> CalibrateRun:
+    """Calibrate from a ``calibration`` session and write the calibration file and its report.
+
+    Parameters
+    ----------
+    session_dir : path
+        The calibration session folder.
+    out : path
+        The calibration file to write (JSON).
+    report : path, None or "beside"
+        The HTML report: beside ``out`` (same name, ``.html``) by default, ``None`` for none.
+    """
+    out = Path(out)
+    _require_suffix(out, (".json",), "--out")
+    report_path = report_beside(out) if report == "beside" else report
+    outputs = [out] + ([report_path] if report_path is not None else [])
+    check_outputs_apart([session_dir], outputs)
+    session = read_session(session_dir)
+    result = calibrate_session(
+        session,
+        method=method,
+        progress=progress,
+        refine_intrinsics=refine_intrinsics,
+        on_stage=on_stage,
+    )
+    record = dict(result.calibration.quality.record)
+    record["provenance"] = provenance("calibrate", {"session": Path(session_dir)})
+    calibration = replace(
+        result.calibration, quality=replace(result.calibration.quality, record=record)
+    )
+    result = replace(result, calibration=calibration)
+    with commit_together(out.parent) as staged:
+        write_calibration(staged(out), calibration)
+        if report_path is not None:
+            staged_report = staged(report_path)
+            write_calibration_report(result, staged_report.parent, staged_report.name)
+    return CalibrateRun(result, out, report_path)
+
+
+# --------------------------------------------------------------------------------------------
+# check
+
+
+@dataclass(frozen=True)
+class CheckRun:
+    """An EF check written: the result and the files."""
+
+    result: EFCheckResult
+    out_path: Path
+    report_path: Path | None
+
+
+def check(
+    session_dir: Path,
+    calibration_path: Path,
+    out: Path,
+    *,
+    report: Path | Literal["beside"] | None = "beside",
+    mode: Literal["fast", "precise"] = "precise",
+    progress: bool = False,
+) -> CheckRun:
+    """The paper's EF check on a ``check`` session; writes the result JSON and its report."""
+    out = Path(out)
+    _require_suffix(out, (".json",), "--out")
+    report_path = report_beside(out) if report == "beside" else report
+    outputs = [out] + ([report_path] if report_path is not None else [])
+    check_outputs_apart([session_dir, calibration_path], outputs)
+    calibration = read_calibration(calibration_path)
+    session = read_session(session_dir)
+    result = run_ef_check(
+        session,
+        calibration,
+        progress=progress,
+        mode=mode,
+        calibration_source=str(Path(calibration_path).resolve()),
+    )
+    data = result.to_json()
+    data["provenance"] = provenance(
+        "check", {"session": Path(session_dir), "calibration": Path(calibration_path)}
+    )
+    with commit_together(out.parent) as staged:
+        write_json_atomic(staged(out), data)
+        if report_path is not None:
+            write_ef_report(result, staged(report_path))
+    return CheckRun(result, out, report_path)
+
+
+# --------------------------------------------------------------------------------------------
+# scan
+
+
+@dataclass(frozen=True)
+class ScanRun:
+    """A cloud written: the scan's result (counts, timings, corrections) and the file."""
+
+    result: ScanResult
+    out_path: Path
+
+
+def scan(
+    session_dirs: Sequence[Path],
+    calibration_path: Path,
+    out: Path,
+    *,
+    options: ScanOptions | None = None,
+    work_dir: Path | None = None,
+    progress: bool = False,
+) -> ScanRun:
+    """Sweep sessions to one base-frame cloud, written atomically (``.ply``, ``.pcd``, ``.e57``).
+
+    Everything that can be refused (file names, calibration, sessions, image sizes) is
+    refused before any image is decoded.
+    """
+    out = Path(out)
+    if out.suffix.lower() not in FORMATS:
+        raise InputError(
+            out, f"expected a {', '.join(FORMATS)} file name, got {out.suffix or 'none'!r}"
+        )
+    if not session_dirs:
+        raise ValueError("sessions: expected at least one sweep session, got none")
+    check_outputs_apart([*session_dirs, calibration_path], [out])
+    calibration = read_calibration(calibration_path)
+    sessions = [read_session(s, check_images=True) for s in session_dirs]
+    check_scan_inputs(sessions, calibration)
+    result = scan_session(
+        sessions,
+        calibration,
+        options or ScanOptions(),
+        out_path=out,
+        work_dir=work_dir,
+        progress=progress,
+        calibration_path=Path(calibration_path),
+    )
+    return ScanRun(result, out)
+
+
+# --------------------------------------------------------------------------------------------
+# measure and acceptance
+
+
+def _cloud_with_provenance(
+    cloud_path: Path, calibration_path: Path | None
+) -> tuple[Any, dict[str, Any]]:
+    points, cloud_provenance = load_cloud(cloud_path)
+    if calibration_path is not None:
+        if not Path(calibration_path).is_file():
+            raise InputError(calibration_path, "calibration file not found")
+        cloud_provenance = {
+            **cloud_provenance,
+            "calibration": str(Path(calibration_path).resolve()),
+        }
+    return points, cloud_provenance
+
+
+def _report_outputs(out: Path) -> list[Path]:
+    _require_suffix(out, (".json",), "--out (the .csv and .html go beside it)")
+    return [out, out.with_suffix(".csv"), out.with_suffix(".html")]
+
+
+@dataclass(frozen=True)
+class MeasureRun:
+    """A measurement written: the report and its JSON, CSV and HTML files."""
+
+    report: MeasurementReport
+    json_path: Path
+    csv_path: Path
+    html_path: Path
+
+
+def measure(
+    cloud_path: Path,
+    plan: str | Path,
+    out: Path,
+    *,
+    calibration_path: Path | None = None,
+) -> MeasureRun:
+    """Fit an inspection plan's features in a cloud; write ``out`` (JSON) with CSV and HTML.
+
+    ``plan`` is a TOML path or the name of a shipped plan (``configs/plans``).
+    """
+    out = Path(out)
+    outputs = _report_outputs(out)
+    plan_path = resolve_config(plan, "plans")
+    check_outputs_apart(
+        [cloud_path, plan_path, *([calibration_path] if calibration_path else [])], outputs
+    )
+    plan_obj = load_plan(plan_path)
+    points, cloud_provenance = _cloud_with_provenance(cloud_path, calibration_path)
+    report = measure_cloud(points, plan_obj, provenance=cloud_provenance)
+    report.cloud_path = str(cloud_path)
+    report.plan_path = str(plan_path)
+    report.provenance["stage"] = provenance(
+        "measure", {"cloud": Path(cloud_path), "plan": plan_path}
+    )
+    with commit_together(out.parent) as staged:
+        write_measurement_report(report, staged(out))
+    return MeasureRun(report, *outputs)
+
+
+@dataclass(frozen=True)
+class AcceptanceRun:
+    """A VDI/VDE 2634-2 acceptance test written: the result and its JSON, CSV, HTML files."""
+
+    result: AcceptanceResult
+    json_path: Path
+    csv_path: Path
+    html_path: Path
+
+
+def acceptance(
+    cloud_path: Path,
+    spec: str | Path,
+    out: Path,
+    *,
+    calibration_path: Path | None = None,
+) -> AcceptanceRun:
+    """PF, PS, SD and F of a scan of a sphere bar and a plate against the spec's MPEs."""
+    out = Path(out)
+    outputs = _report_outputs(out)
+    spec_path = resolve_config(spec, "plans")
+    check_outputs_apart(
+        [cloud_path, spec_path, *([calibration_path] if calibration_path else [])], outputs
+    )
+    spec_obj = load_acceptance_spec(spec_path)
+    points, cloud_provenance = _cloud_with_provenance(cloud_path, calibration_path)
+    result = run_acceptance(points, spec_obj, provenance=cloud_provenance)
+    result.cloud_path = str(cloud_path)
+    result.spec_path = str(spec_path)
+    result.provenance["stage"] = provenance(
+        "acceptance", {"cloud": Path(cloud_path), "spec": spec_path}
+    )
+    with commit_together(out.parent) as staged:
+        write_acceptance_report(result, staged(out))
+    return AcceptanceRun(result, *outputs)
+
+
+# --------------------------------------------------------------------------------------------
+# timing, for the callers that report time per stage
+
+
+@dataclass
+class StageClock:
+    """Seconds per stage name, for a job's summary."""
+
+    seconds: dict[str, float] = field(default_factory=dict)
+
+    def run(self, name: str, fn: Callable[[], Any]) -> Any:
+        t0 = time.perf_counter()
+        try:
+            return fn()
+        finally:
+            self.seconds[name] = time.perf_counter() - t0

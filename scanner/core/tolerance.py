@@ -1,0 +1,129 @@
+"""Tolerances and pass/fail: the status of a measured value against its nominal and band.
+
+Every stage that judges a value (measurement plans, the acceptance test, the EF check, the PLC
+gate) uses these types; the HTML reports only draw them.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Literal
+
+__all__ = [
+    "STATUS_ERROR",
+    "STATUS_FAIL",
+    "STATUS_NA",
+    "STATUS_PASS",
+    "Status",
+    "ToleranceRow",
+    "format_tolerance",
+    "format_value",
+    "status_of",
+]
+
+Status = Literal["pass", "fail", "n/a", "error"]
+STATUS_PASS: Status = "pass"
+STATUS_FAIL: Status = "fail"
+STATUS_NA: Status = "n/a"
+"""No tolerance given: reported, not judged."""
+STATUS_ERROR: Status = "error"
+"""The value could not be measured (a failed fit): counts as failed."""
+
+
+def format_value(value: float | None, decimals: int = 3, signed: bool = False) -> str:
+    """A number as the tables print it: fixed decimals, ``-`` for None, ``NaN`` kept visible."""
+    if value is None:
+        return "-"
+    v = float(value)
+    if not math.isfinite(v):
+        return "NaN" if math.isnan(v) else ("+inf" if v > 0 else "-inf")
+    text = f"{v:.{decimals}f}"
+    if float(text) == 0.0:  # no "-0.000" for a value that rounds to zero
+        return f"{0.0:.{decimals}f}"
+    return f"{v:+.{decimals}f}" if signed else text
+
+
+def format_tolerance(lower: float | None, upper: float | None, decimals: int = 3) -> str:
+    """``±0.050`` for a symmetric band, ``+0.050 / -0.020`` otherwise, ``≤ 0.050`` one-sided.
+
+    ``lower`` and ``upper`` are the permitted deviations from nominal (``lower <= 0 <= upper``
+    in the usual case); None means unbounded on that side.
+    """
+    if lower is None and upper is None:
+        return "-"
+    if lower is None:
+        return f"≤ {format_value(upper, decimals, signed=True)}"
+    if upper is None:
+        return f"≥ {format_value(lower, decimals, signed=True)}"
+    if math.isclose(-lower, upper, rel_tol=1e-9, abs_tol=1e-12):
+        return f"±{format_value(upper, decimals)}"
+    return f"{format_value(upper, decimals, signed=True)} / {format_value(lower, decimals, signed=True)}"
+
+
+def status_of(deviation: float | None, lower: float | None, upper: float | None) -> Status:
+    """``pass`` if ``lower <= deviation <= upper`` (None bounds are open), ``error`` if the
+    deviation is None or not finite, ``n/a`` if neither bound is given."""
+    if deviation is None or not math.isfinite(float(deviation)):
+        return STATUS_ERROR
+    if lower is None and upper is None:
+        return STATUS_NA
+    ok = (lower is None or deviation >= lower) and (upper is None or deviation <= upper)
+    return STATUS_PASS if ok else STATUS_FAIL
+
+
+@dataclass(frozen=True)
+class ToleranceRow:
+    """One line of the Nominal / Actual / Deviation / Tolerance / Status table.
+
+    Parameters
+    ----------
+    name : str
+        What was measured ("sphere spacing A-B").
+    nominal, actual : float or None
+        Nominal and measured value in ``unit``; ``actual`` None means it could not be measured.
+    lower, upper : float or None
+        Permitted deviation from nominal below and above (``-0.05, 0.05`` for ±0.05); None
+        leaves that side open (a maximum permissible error is ``lower=None, upper=MPE`` with
+        nominal 0).
+    unit : str
+        Printed after the name ("mm", "deg", "µm").
+    status : str or None
+        Overrides the status computed from the deviation (e.g. ``"error"`` with a note).
+    note : str
+        Short free text shown in the last column (why a fit failed, which features).
+    """
+
+    name: str
+    nominal: float | None
+    actual: float | None
+    lower: float | None = None
+    upper: float | None = None
+    unit: str = "mm"
+    status: Status | None = None
+    note: str = ""
+
+    @property
+    def deviation(self) -> float | None:
+        """``actual - nominal``; the actual value itself when there is no nominal."""
+        if self.actual is None:
+            return None
+        return float(self.actual) - float(self.nominal or 0.0)
+
+    @property
+    def final_status(self) -> Status:
+        return self.status or status_of(self.deviation, self.lower, self.upper)
+
+    def to_json(self) -> dict[str, Any]:
+        """The same numbers as the HTML row, for the JSON/CSV twin of a report."""
+        return {
+            "name": self.name,
+            "unit": self.unit,
+            "nominal": self.nominal,
+            "actual": self.actual,
+            "deviation": self.deviation,
+            "lower": self.lower,
+            "upper": self.upper,
+            "status": self.final_status,
+            "note": self.note,
+        }
