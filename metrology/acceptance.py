@@ -55,7 +55,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from metrology.fit import Fit, PlaneFit, SphereFit, fit_plane, fit_sphere
 from metrology.measure import cloud_points
-from metrology.plan import Region, load_dataclass
+from metrology.plan import Region
+from scanner.core.config import load_config
 from scanner.core.tolerance import STATUS_ERROR, STATUS_FAIL, STATUS_PASS, ToleranceRow
 
 __all__ = [
@@ -153,7 +154,7 @@ class AcceptanceSpec:
 
 def load_acceptance_spec(path: str | os.PathLike[str]) -> AcceptanceSpec:
     """Load and validate an acceptance specification (errors name file, line and key)."""
-    return load_dataclass(AcceptanceSpec, path)
+    return load_config(AcceptanceSpec, path)
 
 
 @dataclass

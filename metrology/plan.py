@@ -39,15 +39,13 @@ from __future__ import annotations
 
 import math
 import os
-import re
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Literal, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 
-from scanner.core.config import ConfigError, from_dict, load_toml
+from scanner.core.config import load_config
 
 __all__ = [
     "FEATURE_KINDS",
@@ -57,7 +55,6 @@ __all__ = [
     "Nominal",
     "Plan",
     "Region",
-    "load_dataclass",
     "load_plan",
 ]
 
@@ -326,56 +323,6 @@ def _check_kinds(m: MeasurementSpec, kinds: list[str], where: str) -> None:
         raise ValueError(f"{where}.features: {bad}")
 
 
-def _line_of(text: str, key_path: str) -> int | None:
-    """Line of ``key_path`` (``measurements[2].features``) in TOML ``text``: the n-th
-    ``[[array]]`` table, then the last key's ``key =`` inside it (inline tables included)."""
-    parts = re.findall(r"([A-Za-z_][\w-]*)(?:\[(\d+)\])?", key_path)
-    start, end = 0, len(text)
-    keys: list[str] = []
-    for name, index in parts:
-        if index:
-            header = re.compile(rf"^[ \t]*\[\[[ \t]*{re.escape(name)}[ \t]*\]\]", re.M)
-            found = [m.start() for m in header.finditer(text)]
-            if int(index) < len(found):
-                start = found[int(index)]
-                after = text.find("\n", start)
-                nxt = re.compile(r"^[ \t]*\[", re.M).search(text, after + 1) if after >= 0 else None
-                end = nxt.start() if nxt else len(text)
-                keys = []
-                continue
-        keys.append(name)
-    for key in reversed(keys):
-        m = re.compile(rf"(?<![\w.-]){re.escape(key)}[ \t]*=").search(text, start, end)
-        if m:
-            return text.count("\n", 0, m.start()) + 1
-    if start:
-        return text.count("\n", 0, start) + 1
-    return None
-
-
-def _join_key_path(msg: str) -> str:
-    """``"features[1].region: box_max_mm: reason"`` -> ``"features[1].region.box_max_mm: reason"``."""
-    pattern = re.compile(r"^([\w.\[\]]+): ([A-Za-z_][\w]*(?:\[\d+\])?(?:\.[\w\[\]]+)*): ")
-    while m := pattern.match(msg):
-        msg = f"{m.group(1)}.{m.group(2)}: " + msg[m.end() :]
-    return msg
-
-
-def load_dataclass(cls: type[T], path: str | os.PathLike[str]) -> T:
-    """Load TOML ``path`` into dataclass ``cls`` (:func:`scanner.core.config.from_dict`), with
-    errors that name the file, the line (found inside the right ``[[array]]`` table) and the
-    full key path."""
-    p = Path(path)
-    data = load_toml(p)
-    try:
-        return from_dict(cls, data)
-    except ValueError as exc:
-        msg = _join_key_path(str(exc))
-        key = msg.split(":", 1)[0]
-        line = _line_of(p.read_text(encoding="utf-8"), key)
-        raise ConfigError(f"{p}, line {line}" if line else p, msg) from None
-
-
 def load_plan(path: str | os.PathLike[str]) -> Plan:
     """Load and validate an inspection plan.
 
@@ -387,4 +334,4 @@ def load_plan(path: str | os.PathLike[str]) -> Plan:
     InputError
         The file is missing or not TOML.
     """
-    return load_dataclass(Plan, path)
+    return load_config(Plan, path)

@@ -40,19 +40,6 @@ def conic_from_coefficients(a: ArrayLike) -> NDArray:
     return np.array([[a, b / 2, d / 2], [b / 2, c, e / 2], [d / 2, e / 2, f]])
 
 
-def _coefficients(conic: NDArray) -> NDArray:
-    return np.array(
-        [
-            conic[0, 0],
-            2 * conic[0, 1],
-            conic[1, 1],
-            2 * conic[0, 2],
-            2 * conic[1, 2],
-            conic[2, 2],
-        ]
-    )
-
-
 def sampson_distances(conic: NDArray, points_px: NDArray) -> NDArray:
     """First-order geometric (Sampson) distance of ``(M, 2)`` points to a conic, pixels, signed."""
     x = np.column_stack([points_px, np.ones(len(points_px))])

@@ -89,13 +89,38 @@ def load_toml(path: str | os.PathLike[str]) -> dict[str, Any]:
 
 
 def _line_of(text: str, key_path: str) -> int | None:
-    """Best-effort line number of the last key of ``key_path`` in TOML ``text``."""
-    last = re.split(r"[.\[]", key_path.replace("]", ""))[-1]
-    if not last or last.isdigit():
-        return None
-    pattern = re.compile(rf"^\s*{re.escape(last)}\s*=", re.MULTILINE)
-    m = pattern.search(text)
-    return text.count("\n", 0, m.start()) + 1 if m else None
+    """Line of ``key_path`` (``measurements[2].features``) in TOML ``text``: the n-th
+    ``[[array]]`` table, then the last key's ``key =`` inside it (inline tables included)."""
+    parts = re.findall(r"([A-Za-z_][\w-]*)(?:\[(\d+)\])?", key_path)
+    start, end = 0, len(text)
+    keys: list[str] = []
+    for name, index in parts:
+        if index:
+            header = re.compile(rf"^[ \t]*\[\[[ \t]*{re.escape(name)}[ \t]*\]\]", re.M)
+            found = [m.start() for m in header.finditer(text)]
+            if int(index) < len(found):
+                start = found[int(index)]
+                after = text.find("\n", start)
+                nxt = re.compile(r"^[ \t]*\[", re.M).search(text, after + 1) if after >= 0 else None
+                end = nxt.start() if nxt else len(text)
+                keys = []
+                continue
+        keys.append(name)
+    for key in reversed(keys):
+        m = re.compile(rf"(?<![\w.-]){re.escape(key)}[ \t]*=").search(text, start, end)
+        if m:
+            return text.count("\n", 0, m.start()) + 1
+    if start:
+        return text.count("\n", 0, start) + 1
+    return None
+
+
+def _join_key_path(msg: str) -> str:
+    """``"features[1].region: box_max_mm: reason"`` -> ``"features[1].region.box_max_mm: reason"``."""
+    pattern = re.compile(r"^([\w.\[\]]+): ([A-Za-z_][\w]*(?:\[\d+\])?(?:\.[\w\[\]]+)*): ")
+    while m := pattern.match(msg):
+        msg = f"{m.group(1)}.{m.group(2)}: " + msg[m.end() :]
+    return msg
 
 
 def _is_optional(tp: Any) -> tuple[bool, Any]:
@@ -194,13 +219,14 @@ def from_dict(cls: type[T], data: dict[str, Any], where: str = "") -> T:
 
 
 def load_config(cls: type[T], path: str | os.PathLike[str]) -> T:
-    """Load TOML ``path`` into dataclass ``cls``; errors name the file, line and key."""
+    """Load TOML ``path`` into dataclass ``cls``; errors name the file, the line (found inside
+    the right ``[[array]]`` table) and the full key path."""
     p = Path(path)
     data = load_toml(p)
     try:
         return from_dict(cls, data)
     except ValueError as exc:
-        msg = str(exc)
+        msg = _join_key_path(str(exc))
         key = msg.split(":", 1)[0]
         line = _line_of(p.read_text(encoding="utf-8"), key)
         raise ConfigError(f"{p}, line {line}" if line else p, msg) from None

@@ -37,7 +37,6 @@ conventions (``RotationConvention``); :func:`pose_to_transform` turns them into
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from enum import Enum
 
 import numpy as np
@@ -284,8 +283,3 @@ def transform_to_pose(
         vals = rot.as_euler("ZYX", degrees=True)
     pos = m[:, :3, 3].copy()
     return (pos[0], vals[0]) if single else (pos, vals)
-
-
-def stack_transforms(transforms: Sequence[ArrayLike]) -> NDArray:
-    """Stack 4x4 transforms into an ``(N, 4, 4)`` float64 array, checking each."""
-    return np.stack([check_transform(t, f"transform {i}") for i, t in enumerate(transforms)])

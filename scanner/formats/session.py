@@ -26,7 +26,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from numpy.typing import NDArray
 
 from scanner.core.conventions import (
@@ -422,11 +421,3 @@ def write_session(
         meta.update(extra)
     write_text_atomic(root / "session.json", json.dumps(meta, indent=2) + "\n")
     return root
-
-
-def poses_array(frames: Sequence[Frame]) -> NDArray:
-    """``(N, 4, 4)`` ``base_from_flange`` of frames that all have poses."""
-    missing = [f.id for f in frames if f.base_from_flange is None]
-    if missing:
-        raise ValueError(f"expected a pose on every frame, frames without one: {missing[:10]}")
-    return np.stack([f.base_from_flange for f in frames])  # type: ignore[misc]

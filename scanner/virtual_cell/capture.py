@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from scanner.core.conventions import check_transform, invert_transform, make_transform
+from scanner.core.conventions import check_transform, make_transform
 from scanner.core.targets import TargetSpec
 from scanner.virtual_cell.cell import CellConfig, load_cell
 from scanner.virtual_cell.render import (
@@ -261,14 +261,3 @@ def render_laser_image(
         cell.camera, scene, Laser.from_cell(cell, scene.world_from_cam), truth_step_px
     )
     return image, truth
-
-
-def cam_from_target_of(scene: Scene) -> NDArray:
-    """``cam_from_target`` of a scene holding a printed target."""
-    k = scene.surface_index(TARGET_ID)
-    s = scene.surfaces[k]
-    if not isinstance(s, PlaneSurface):
-        raise ValueError(
-            f"scene: expected a printed plane as {TARGET_ID!r}, got {type(s).__name__}"
-        )
-    return invert_transform(scene.world_from_cam) @ s.world_from_local

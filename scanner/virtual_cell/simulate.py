@@ -14,7 +14,7 @@ import logging
 import os
 import sys
 from collections.abc import Iterator
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -499,8 +499,3 @@ def simulate_cell(
     write_calibration(out / "calibration_true.json", truth.calibration())
     log.info("simulated %s into %s", cell.name, out)
     return truth
-
-
-def with_sweep_frames(cell: CellConfig, frames: int) -> CellConfig:
-    """The cell with another number of sweep frames."""
-    return replace(cell, sweep=replace(cell.sweep, frames=frames))
