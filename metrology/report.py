@@ -417,24 +417,23 @@ def measurement_html(report: Any, renderer_note: bool = True) -> str:
     )
 
 
-def write_measurement_report(report: Any, out_json: str | os.PathLike[str]) -> dict[str, Path]:
-    """Write ``<out>.json``, ``<out>.csv`` and ``<out>.html`` for a measurement report.
-
-    Returns
-    -------
-    dict
-        ``{"json": path, "csv": path, "html": path}``.
-    """
+def _write_judged(result: Any, out_json: str | os.PathLike[str], html_text: str) -> None:
+    """``<out>.json`` (the result with the names of its twins), ``<out>.csv`` (its rows) and
+    ``<out>.html`` (``html_text``)."""
     out = Path(out_json)
     if out.suffix.lower() != ".json":
         raise ValueError(f"--out: expected a .json file name, got {out.name!r}")
-    paths = {"json": out, "csv": out.with_suffix(".csv"), "html": out.with_suffix(".html")}
-    data = report.to_json()
-    data["files"] = {"csv": paths["csv"].name, "html": paths["html"].name}
-    write_json_atomic(paths["json"], data)
-    write_rows_csv(paths["csv"], report.rows)
-    rep.write_page(paths["html"], measurement_html(report))
-    return paths
+    csv_path, html_path = out.with_suffix(".csv"), out.with_suffix(".html")
+    data = result.to_json()
+    data["files"] = {"csv": csv_path.name, "html": html_path.name}
+    write_json_atomic(out, data)
+    write_rows_csv(csv_path, result.rows)
+    rep.write_page(html_path, html_text)
+
+
+def write_measurement_report(report: Any, out_json: str | os.PathLike[str]) -> None:
+    """Write ``<out>.json``, ``<out>.csv`` and ``<out>.html`` for a measurement report."""
+    _write_judged(report, out_json, measurement_html(report))
 
 
 # --------------------------------------------------------------------------------------------
@@ -534,15 +533,6 @@ def acceptance_html(result: Any) -> str:
     )
 
 
-def write_acceptance_report(result: Any, out_json: str | os.PathLike[str]) -> dict[str, Path]:
+def write_acceptance_report(result: Any, out_json: str | os.PathLike[str]) -> None:
     """Write ``<out>.json``, ``<out>.csv`` and ``<out>.html`` for an acceptance result."""
-    out = Path(out_json)
-    if out.suffix.lower() != ".json":
-        raise ValueError(f"--out: expected a .json file name, got {out.name!r}")
-    paths = {"json": out, "csv": out.with_suffix(".csv"), "html": out.with_suffix(".html")}
-    data = result.to_json()
-    data["files"] = {"csv": paths["csv"].name, "html": paths["html"].name}
-    write_json_atomic(paths["json"], data)
-    write_rows_csv(paths["csv"], result.rows)
-    rep.write_page(paths["html"], acceptance_html(result))
-    return paths
+    _write_judged(result, out_json, acceptance_html(result))

@@ -92,7 +92,7 @@ def run_demo(
     """
     out = Path(out_dir) if out_dir is not None else Path("reports") / f"demo-{Path(cell).stem}"
     out.mkdir(parents=True, exist_ok=True)
-    job = JobLayout(out)
+    job = JobLayout.of(out)
     result = DemoResult(out_dir=out, index_html=job.index)
     clock = stages.StageClock(result.seconds)
 

@@ -23,7 +23,9 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
+
+from numpy.typing import NDArray
 
 from calibration.pipeline import CalibrationResult, calibrate_session
 from calibration.report import write_calibration_report
@@ -58,6 +60,7 @@ __all__ = [
     "CalibrateRun",
     "CheckRun",
     "MeasureRun",
+    "ReportFiles",
     "ScanRun",
     "StageClock",
     "acceptance",
@@ -323,86 +326,101 @@ def _cloud_with_provenance(
     return points, cloud_provenance
 
 
-def _report_outputs(out: Path) -> list[Path]:
-    _require_suffix(out, (".json",), "--out (the .csv and .html go beside it)")
-    return [out, out.with_suffix(".csv"), out.with_suffix(".html")]
-
-
 @dataclass(frozen=True)
-class MeasureRun:
-    """A measurement written: the report and its JSON, CSV and HTML files."""
+class ReportFiles:
+    """The three files of a judged cloud: JSON (for machines), CSV (the table), HTML."""
 
-    report: MeasurementReport
     json_path: Path
     csv_path: Path
     html_path: Path
 
+    @classmethod
+    def beside(cls, out: Path) -> ReportFiles:
+        _require_suffix(out, (".json",), "--out (the .csv and .html go beside it)")
+        return cls(out, out.with_suffix(".csv"), out.with_suffix(".html"))
+
+
+R = TypeVar("R", MeasurementReport, AcceptanceResult)
+
+
+def _judge_cloud(
+    stage: str,
+    cloud_path: Path,
+    config: str | Path,
+    out: Path,
+    calibration_path: Path | None,
+    judge: Callable[[NDArray, Path, dict[str, Any]], R],
+    write: Callable[[R, Path], object],
+) -> tuple[R, ReportFiles]:
+    """Judge a cloud against a plan or spec (``configs/plans`` name or path); write the files.
+
+    ``judge(points, config_path, provenance)`` loads the config and computes the result;
+    ``write(result, out_json)`` writes the JSON, CSV and HTML beside each other.
+    """
+    files = ReportFiles.beside(Path(out))
+    config_path = resolve_config(config, "plans")
+    inputs = [cloud_path, config_path, *([calibration_path] if calibration_path else [])]
+    check_outputs_apart(inputs, [files.json_path, files.csv_path, files.html_path])
+    points, cloud_provenance = _cloud_with_provenance(cloud_path, calibration_path)
+    cloud_provenance["stage"] = provenance(stage, {"cloud": cloud_path, "plan": config_path})
+    result = judge(points, config_path, cloud_provenance)
+    result.cloud_path = str(cloud_path)
+    with commit_together(files.json_path.parent) as staged:
+        write(result, staged(files.json_path))
+    return result, files
+
+
+def _measure(
+    points: NDArray, plan_path: Path, cloud_provenance: dict[str, Any]
+) -> MeasurementReport:
+    report = measure_cloud(points, load_plan(plan_path), provenance=cloud_provenance)
+    report.plan_path = str(plan_path)
+    return report
+
+
+def _accept(points: NDArray, spec_path: Path, cloud_provenance: dict[str, Any]) -> AcceptanceResult:
+    result = run_acceptance(points, load_acceptance_spec(spec_path), provenance=cloud_provenance)
+    result.spec_path = str(spec_path)
+    return result
+
+
+@dataclass(frozen=True)
+class MeasureRun:
+    """A measurement written: the report and its files."""
+
+    report: MeasurementReport
+    files: ReportFiles
+
 
 def measure(
-    cloud_path: Path,
-    plan: str | Path,
-    out: Path,
-    *,
-    calibration_path: Path | None = None,
+    cloud_path: Path, plan: str | Path, out: Path, *, calibration_path: Path | None = None
 ) -> MeasureRun:
     """Fit an inspection plan's features in a cloud; write ``out`` (JSON) with CSV and HTML.
 
     ``plan`` is a TOML path or the name of a shipped plan (``configs/plans``).
     """
-    out = Path(out)
-    outputs = _report_outputs(out)
-    plan_path = resolve_config(plan, "plans")
-    check_outputs_apart(
-        [cloud_path, plan_path, *([calibration_path] if calibration_path else [])], outputs
+    report, files = _judge_cloud(
+        "measure", cloud_path, plan, out, calibration_path, _measure, write_measurement_report
     )
-    plan_obj = load_plan(plan_path)
-    points, cloud_provenance = _cloud_with_provenance(cloud_path, calibration_path)
-    report = measure_cloud(points, plan_obj, provenance=cloud_provenance)
-    report.cloud_path = str(cloud_path)
-    report.plan_path = str(plan_path)
-    report.provenance["stage"] = provenance(
-        "measure", {"cloud": Path(cloud_path), "plan": plan_path}
-    )
-    with commit_together(out.parent) as staged:
-        write_measurement_report(report, staged(out))
-    return MeasureRun(report, *outputs)
+    return MeasureRun(report, files)
 
 
 @dataclass(frozen=True)
 class AcceptanceRun:
-    """A VDI/VDE 2634-2 acceptance test written: the result and its JSON, CSV, HTML files."""
+    """A VDI/VDE 2634-2 acceptance test written: the result and its files."""
 
     result: AcceptanceResult
-    json_path: Path
-    csv_path: Path
-    html_path: Path
+    files: ReportFiles
 
 
 def acceptance(
-    cloud_path: Path,
-    spec: str | Path,
-    out: Path,
-    *,
-    calibration_path: Path | None = None,
+    cloud_path: Path, spec: str | Path, out: Path, *, calibration_path: Path | None = None
 ) -> AcceptanceRun:
     """PF, PS, SD and F of a scan of a sphere bar and a plate against the spec's MPEs."""
-    out = Path(out)
-    outputs = _report_outputs(out)
-    spec_path = resolve_config(spec, "plans")
-    check_outputs_apart(
-        [cloud_path, spec_path, *([calibration_path] if calibration_path else [])], outputs
+    result, files = _judge_cloud(
+        "acceptance", cloud_path, spec, out, calibration_path, _accept, write_acceptance_report
     )
-    spec_obj = load_acceptance_spec(spec_path)
-    points, cloud_provenance = _cloud_with_provenance(cloud_path, calibration_path)
-    result = run_acceptance(points, spec_obj, provenance=cloud_provenance)
-    result.cloud_path = str(cloud_path)
-    result.spec_path = str(spec_path)
-    result.provenance["stage"] = provenance(
-        "acceptance", {"cloud": Path(cloud_path), "spec": spec_path}
-    )
-    with commit_together(out.parent) as staged:
-        write_acceptance_report(result, staged(out))
-    return AcceptanceRun(result, *outputs)
+    return AcceptanceRun(result, files)
 
 
 # --------------------------------------------------------------------------------------------

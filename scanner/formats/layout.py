@@ -32,54 +32,40 @@ def report_beside(out_path: str | os.PathLike[str], suffix: str = ".html") -> Pa
 
 @dataclass(frozen=True)
 class JobLayout:
-    """Where each artefact of a job folder ``root`` lives."""
+    """Where each artefact of a job folder lives: ``JobLayout.of(root)``."""
 
     root: Path
+    sessions: Path
+    truth: Path
+    calibration: Path
+    calibration_report: Path
+    check: Path
+    check_report: Path
+    cloud: Path
+    measure: Path
+    acceptance: Path
+    summary: Path
+    index: Path
 
-    @property
-    def sessions(self) -> Path:
-        return self.root / "sessions"
+    @classmethod
+    def of(cls, root: str | os.PathLike[str]) -> JobLayout:
+        """The layout of the job folder ``root``."""
+        r = Path(root)
+        return cls(
+            root=r,
+            sessions=r / "sessions",
+            truth=r / "sessions" / "truth.json",
+            calibration=r / "calibration.json",
+            calibration_report=report_beside(r / "calibration.json"),
+            check=r / "check.json",
+            check_report=report_beside(r / "check.json"),
+            cloud=r / "cloud.ply",
+            measure=r / "measure.json",
+            acceptance=r / "acceptance.json",
+            summary=r / "summary.json",
+            index=r / "index.html",
+        )
 
     def session(self, kind: str) -> Path:
         """The session folder of ``kind`` (``calibration``, ``check`` or ``sweep``)."""
         return self.sessions / kind
-
-    @property
-    def truth(self) -> Path:
-        return self.sessions / "truth.json"
-
-    @property
-    def calibration(self) -> Path:
-        return self.root / "calibration.json"
-
-    @property
-    def calibration_report(self) -> Path:
-        return report_beside(self.calibration)
-
-    @property
-    def check(self) -> Path:
-        return self.root / "check.json"
-
-    @property
-    def check_report(self) -> Path:
-        return report_beside(self.check)
-
-    @property
-    def cloud(self) -> Path:
-        return self.root / "cloud.ply"
-
-    @property
-    def measure(self) -> Path:
-        return self.root / "measure.json"
-
-    @property
-    def acceptance(self) -> Path:
-        return self.root / "acceptance.json"
-
-    @property
-    def summary(self) -> Path:
-        return self.root / "summary.json"
-
-    @property
-    def index(self) -> Path:
-        return self.root / "index.html"

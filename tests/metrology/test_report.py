@@ -28,15 +28,15 @@ def is_png(data: bytes) -> bool:
 
 def test_measurement_report_files_agree(tmp_path: Path, measured, monkeypatch):
     monkeypatch.setenv("SCANNER_RENDERER", "matplotlib")
-    paths = mreport.write_measurement_report(measured, tmp_path / "m.json")
-    data = json.loads(paths["json"].read_text())
-    with open(paths["csv"], newline="") as fh:
+    mreport.write_measurement_report(measured, tmp_path / "m.json")
+    data = json.loads((tmp_path / "m.json").read_text())
+    with open(tmp_path / "m.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
     assert [r["name"] for r in rows] == [m["name"] for m in data["measurements"]]
     for r, m in zip(rows, data["measurements"]):
         assert float(r["actual"]) == pytest.approx(m["actual"], rel=1e-12)
         assert r["status"] == m["status"]
-    html_text = paths["html"].read_text(encoding="utf-8")
+    html_text = (tmp_path / "m.html").read_text(encoding="utf-8")
     assert "PASS — 11 passed, 0 failed" in html_text
     assert html_text.count('<tr class="pass">') == 11
     # self-contained: no external resources, every image embedded
@@ -108,9 +108,9 @@ def test_acceptance_report_page(tmp_path: Path, monkeypatch):
         paper_scene(np.random.default_rng(3), n=6000),
         CONFIG_DIR / "plans" / "acceptance_paper.toml",
     )
-    paths = mreport.write_acceptance_report(result, tmp_path / "a.json")
-    html_text = paths["html"].read_text(encoding="utf-8")
+    mreport.write_acceptance_report(result, tmp_path / "a.json")
+    html_text = (tmp_path / "a.html").read_text(encoding="utf-8")
     assert "VDI/VDE 2634" in html_text
     assert "PF probing error, form" in html_text and "SD sphere-spacing error" in html_text
     assert not re.search(r'(src|href)="(?!data:)', html_text)
-    assert json.loads(paths["json"].read_text())["summary"]["passed"] == 6
+    assert json.loads((tmp_path / "a.json").read_text())["summary"]["passed"] == 6

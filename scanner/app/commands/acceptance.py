@@ -49,5 +49,6 @@ def run(args: argparse.Namespace) -> int:
                 f"  {c.row.final_status.upper()}: {c.symbol} {c.artefact} {value} "
                 f"(MPE {c.mpe_mm * 1000:.1f} µm){' - ' + c.row.note if c.value_mm is None else ''}"
             )
-    print(f"wrote {run_.json_path}, {run_.csv_path.name}, {run_.html_path.name}")
+    files = run_.files
+    print(f"wrote {files.json_path}, {files.csv_path.name}, {files.html_path.name}")
     return EXIT_TEST_FAILED if args.strict and not result.passed else 0

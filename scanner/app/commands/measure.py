@@ -50,5 +50,6 @@ def run(args: argparse.Namespace) -> int:
                 f"  {m.row.final_status.upper()}: {m.row.name}"
                 + (f" ({m.row.note})" if m.row.note else "")
             )
-    print(f"wrote {run_.json_path}, {run_.csv_path.name}, {run_.html_path.name}")
+    files = run_.files
+    print(f"wrote {files.json_path}, {files.csv_path.name}, {files.html_path.name}")
     return EXIT_OUT_OF_TOLERANCE if args.strict and not report.passed else 0

@@ -186,7 +186,7 @@ class VirtualCellSource:
 
     cell: str = "modern"
     seed: int = 0
-    workers: int = 1
+    workers: int = 2
 
     def acquire(self, kind: str, ctx: JobContext, recipe: Recipe | None = None) -> Path:
         cell = recipe.cell if recipe is not None and recipe.cell else self.cell
@@ -303,7 +303,7 @@ class PipelineJobs:
         calibration = self._require_calibration()
         ctx.session_path = self.source.acquire("check", ctx)
         ctx.check_cancelled()
-        job = JobLayout(ctx.work_dir)
+        job = JobLayout.of(ctx.work_dir)
         run = _call(stages.check, ctx.session_path, calibration, job.check)
         result = run.result
         results = (
@@ -335,7 +335,7 @@ class PipelineJobs:
         plan = _call(resolve_config, recipe.plan, "plans")
         ctx.session_path = self.source.acquire("sweep", ctx, recipe)
         ctx.check_cancelled()
-        job = JobLayout(ctx.work_dir)
+        job = JobLayout.of(ctx.work_dir)
         _call(stages.scan, [ctx.session_path], calibration, job.cloud)
         ctx.check_cancelled()
         run = _call(stages.measure, job.cloud, plan, job.measure, calibration_path=calibration)
@@ -347,8 +347,8 @@ class PipelineJobs:
         return JobOutcome(
             passed=bool(report.passed),
             results_um=(figures[0], figures[1], figures[2]),
-            report_path=run.html_path,
-            artefacts=(job.cloud, run.json_path),
+            report_path=run.files.html_path,
+            artefacts=(job.cloud, run.files.json_path),
             message=report.summary(),
         )
 
@@ -359,7 +359,7 @@ class PipelineJobs:
         """
         ctx.session_path = self.source.acquire("calibration", ctx)
         ctx.check_cancelled()
-        job = JobLayout(ctx.work_dir)
+        job = JobLayout.of(ctx.work_dir)
         run = _call(stages.calibrate, ctx.session_path, job.calibration)
         ctx.check_cancelled()
         passed, reason, plane_um = calibration_gate(run.quality, self.config.calibration_gate)
