@@ -46,6 +46,7 @@ import logging
 import math
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from typing import Any
@@ -57,7 +58,7 @@ from metrology.fit import Fit, PlaneFit, SphereFit, fit_plane, fit_sphere
 from metrology.measure import cloud_points
 from metrology.plan import Region
 from scanner.core.config import load_config
-from scanner.core.tolerance import STATUS_ERROR, STATUS_FAIL, STATUS_PASS, ToleranceRow
+from scanner.core.tolerance import STATUS_ERROR, STATUS_FAIL, STATUS_PASS, RowCounts, ToleranceRow
 
 __all__ = [
     "MPE",
@@ -183,7 +184,7 @@ class Characteristic:
 
 
 @dataclass
-class AcceptanceResult:
+class AcceptanceResult(RowCounts):
     """Characteristics, fits and the per-point deviations of one acceptance scan."""
 
     spec: AcceptanceSpec
@@ -201,18 +202,6 @@ class AcceptanceResult:
     @property
     def rows(self) -> list[ToleranceRow]:
         return [c.row for c in self.characteristics]
-
-    @property
-    def n_passed(self) -> int:
-        return sum(c.passed for c in self.characteristics)
-
-    @property
-    def n_failed(self) -> int:
-        return len(self.characteristics) - self.n_passed
-
-    @property
-    def passed(self) -> bool:
-        return self.n_failed == 0
 
     def worst(self, symbol: str) -> float | None:
         """The decisive value of a characteristic: the largest PF or F, the PS or SD of the
@@ -285,6 +274,32 @@ def _trim_and_refit(
     return fit, mask, n_drop
 
 
+def _fit_region(
+    points: NDArray,
+    region: Region,
+    spec: AcceptanceSpec,
+    failed: Callable[..., Fit],
+    fit: Callable[..., Fit],
+    **kwargs: Any,
+) -> tuple[Fit, int]:
+    """Fit an artefact to its region's points, then drop the spec's outlier fraction and refit.
+
+    Returns the fit (its ``inliers`` a mask over ``points``) and how many points were
+    dropped; a region with fewer than ``spec.min_points`` gives ``failed(reason=...)``.
+    """
+    if len(points) < spec.min_points:
+        reason = (
+            f"too few points in the region: expected at least {spec.min_points}, "
+            f"got {len(points)} ({region.describe()})"
+        )
+        return failed(reason=reason), 0
+    first = fit(points, spec.threshold_mm, **kwargs)
+    if not first:
+        return first, 0
+    refit, mask, n_drop = _trim_and_refit(points, first, spec.outlier_fraction, fit)
+    return (_with_mask(refit, mask) if refit else refit), n_drop
+
+
 def run_acceptance(
     cloud: str | os.PathLike[str] | ArrayLike,
     spec: AcceptanceSpec | str | os.PathLike[str],
@@ -327,24 +342,10 @@ def run_acceptance(
     for s in spec.spheres:
         idx = np.flatnonzero(s.region.select(points))
         r_nom = s.calibrated_diameter_mm / 2
-        if idx.size < spec.min_points:
-            fit: Fit = SphereFit(
-                reason=f"too few points in the region: expected at least {spec.min_points}, "
-                f"got {idx.size} ({s.region.describe()})"
-            )
-            mask = np.zeros(idx.size, dtype=bool)
-        else:
-            first = fit_sphere(
-                points[idx], spec.threshold_mm, radius_range_mm=(0.75 * r_nom, 1.25 * r_nom)
-            )
-            if first:
-                fit, mask, excluded[s.name] = _trim_and_refit(
-                    points[idx], first, spec.outlier_fraction, fit_sphere
-                )
-                if fit:
-                    fit = _with_mask(fit, mask)
-            else:
-                fit, mask = first, np.zeros(idx.size, dtype=bool)
+        fit, excluded[s.name] = _fit_region(
+            points[idx], s.region, spec, SphereFit, fit_sphere,
+            radius_range_mm=(0.75 * r_nom, 1.25 * r_nom),
+        )  # fmt: skip
         if fit and fit.n_inliers < spec.min_points:
             fit = SphereFit(
                 reason=f"too few sphere points: expected {spec.min_points}, got {fit.n_inliers}"
@@ -391,22 +392,7 @@ def run_acceptance(
     # Plate: F
     plate = spec.plate
     idx = np.flatnonzero(plate.region.select(points))
-    if idx.size < spec.min_points:
-        pfit: Fit = PlaneFit(
-            reason=f"too few points in the region: expected at least {spec.min_points}, got "
-            f"{idx.size} ({plate.region.describe()})"
-        )
-        mask = np.zeros(idx.size, dtype=bool)
-    else:
-        first = fit_plane(points[idx], spec.threshold_mm)
-        if first:
-            pfit, mask, excluded[plate.name] = _trim_and_refit(
-                points[idx], first, spec.outlier_fraction, fit_plane
-            )
-            if pfit:
-                pfit = _with_mask(pfit, mask)
-        else:
-            pfit, mask = first, np.zeros(idx.size, dtype=bool)
+    pfit, excluded[plate.name] = _fit_region(points[idx], plate.region, spec, PlaneFit, fit_plane)
     place(plate.name, idx, pfit)
     f_val = float(pfit.range_mm) if pfit else None
     chars.append(

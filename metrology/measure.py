@@ -38,7 +38,7 @@ from metrology.fit import (
 from metrology.plan import FeatureSpec, MeasurementSpec, Plan, load_plan
 from scanner.core.conventions import check_points
 from scanner.core.fileio import InputError
-from scanner.core.tolerance import STATUS_ERROR, STATUS_FAIL, STATUS_NA, STATUS_PASS, ToleranceRow
+from scanner.core.tolerance import STATUS_ERROR, RowCounts, ToleranceRow
 
 __all__ = [
     "CLOUD_SUFFIXES",
@@ -201,7 +201,7 @@ class MeasurementResult:
 
 
 @dataclass
-class MeasurementReport:
+class MeasurementReport(RowCounts):
     """Everything a measurement run produced; ``to_json`` is the machine-readable twin of the
     HTML report."""
 
@@ -221,23 +221,6 @@ class MeasurementReport:
     @property
     def rows(self) -> list[ToleranceRow]:
         return [m.row for m in self.measurements]
-
-    @property
-    def n_passed(self) -> int:
-        return sum(r.final_status == STATUS_PASS for r in self.rows)
-
-    @property
-    def n_failed(self) -> int:
-        return sum(r.final_status in (STATUS_FAIL, STATUS_ERROR) for r in self.rows)
-
-    @property
-    def n_not_judged(self) -> int:
-        return sum(r.final_status == STATUS_NA for r in self.rows)
-
-    @property
-    def passed(self) -> bool:
-        """True when no measurement failed or could not be made."""
-        return self.n_failed == 0
 
     def summary(self) -> str:
         """One line: ``PASS: 9 passed, 0 failed (plan 'x', 1234567 points)``."""

@@ -279,6 +279,16 @@ def provenance_items(provenance: dict[str, Any], cloud_path: str | None) -> list
     return items
 
 
+def _inputs_section(result: Any, verb: str, extra: list[tuple[str, Any]]) -> str:
+    """ "Calibration and inputs": where the cloud came from, what else, when and how long."""
+    items = provenance_items(result.provenance, result.cloud_path) + extra
+    items += [
+        (verb, result.created.strftime("%Y-%m-%d %H:%M:%S UTC")),
+        ("run time", f"{result.seconds:.2f} s"),
+    ]
+    return rep.section("Calibration and inputs", rep.key_value_table(items))
+
+
 def write_rows_csv(path: str | os.PathLike[str], rows: Sequence[ToleranceRow]) -> None:
     """The Nominal / Actual / Deviation / Tolerance / Status table as CSV (atomic)."""
     cols = ["name", "unit", "nominal", "actual", "deviation", "lower", "upper", "status", "note"]
@@ -401,14 +411,8 @@ def measurement_html(report: Any, renderer_note: bool = True) -> str:
                 rep.table(["Feature", "Reason"], [[f.spec.name, f.fit.reason] for f in failed]),
             )
         )
-    items = provenance_items(report.provenance, report.cloud_path)
-    items += [
-        ("plan", report.plan_path or report.plan.name),
-        ("plan cell", report.plan.cell or "-"),
-        ("measured", report.created.strftime("%Y-%m-%d %H:%M:%S UTC")),
-        ("run time", f"{report.seconds:.2f} s"),
-    ]
-    body.append(rep.section("Calibration and inputs", rep.key_value_table(items)))
+    extra = [("plan", report.plan_path or report.plan.name), ("plan cell", report.plan.cell or "-")]
+    body.append(_inputs_section(report, "measured", extra))
     return rep.page(
         f"Measurement report — {report.plan.name}",
         "".join(body),
@@ -519,12 +523,7 @@ def acceptance_html(result: Any) -> str:
          f"{mpe.sphere_spacing_mm:.4f} / {mpe.flatness_mm:.4f} mm"),
     ]  # fmt: skip
     body.append(rep.section("Specification", rep.key_value_table(spec_items)))
-    items = provenance_items(result.provenance, result.cloud_path)
-    items += [
-        ("evaluated", result.created.strftime("%Y-%m-%d %H:%M:%S UTC")),
-        ("run time", f"{result.seconds:.2f} s"),
-    ]
-    body.append(rep.section("Calibration and inputs", rep.key_value_table(items)))
+    body.append(_inputs_section(result, "evaluated", []))
     return rep.page(
         f"Acceptance test (VDI/VDE 2634-2) — {spec.name}",
         "".join(body),

@@ -14,20 +14,19 @@ from collections.abc import Sequence
 
 from scanner import __version__
 from scanner.app.commands import (
-    acceptance,
     calibrate,
     check,
     demo,
     history,
-    measure,
     scan,
     serve,
     simulate,
     target,
 )
+from scanner.app.commands.judge import ACCEPTANCE, MEASURE
 
 #: The sub-commands in the order ``scanner --help`` lists them.
-COMMANDS = (simulate, target, calibrate, check, scan, measure, acceptance, demo, serve, history)
+COMMANDS = (simulate, target, calibrate, check, scan, MEASURE, ACCEPTANCE, demo, serve, history)
 
 EXIT_BAD_INPUT = 2
 EXIT_FAILED = 1

@@ -23,7 +23,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Literal, TypeVar
+from typing import Any, Generic, Literal, TypeVar
 
 from numpy.typing import NDArray
 
@@ -56,10 +56,9 @@ from scanner.virtual_cell.simulate import simulate_cell
 from scanner.virtual_cell.truth import CellTruth
 
 __all__ = [
-    "AcceptanceRun",
     "CalibrateRun",
     "CheckRun",
-    "MeasureRun",
+    "Judged",
     "ReportFiles",
     "ScanRun",
     "StageClock",
@@ -385,16 +384,16 @@ def _accept(points: NDArray, spec_path: Path, cloud_provenance: dict[str, Any]) 
 
 
 @dataclass(frozen=True)
-class MeasureRun:
-    """A measurement written: the report and its files."""
+class Judged(Generic[R]):
+    """A judged cloud written: the result (measurement report or acceptance) and its files."""
 
-    report: MeasurementReport
+    result: R
     files: ReportFiles
 
 
 def measure(
     cloud_path: Path, plan: str | Path, out: Path, *, calibration_path: Path | None = None
-) -> MeasureRun:
+) -> Judged[MeasurementReport]:
     """Fit an inspection plan's features in a cloud; write ``out`` (JSON) with CSV and HTML.
 
     ``plan`` is a TOML path or the name of a shipped plan (``configs/plans``).
@@ -402,25 +401,17 @@ def measure(
     report, files = _judge_cloud(
         "measure", cloud_path, plan, out, calibration_path, _measure, write_measurement_report
     )
-    return MeasureRun(report, files)
-
-
-@dataclass(frozen=True)
-class AcceptanceRun:
-    """A VDI/VDE 2634-2 acceptance test written: the result and its files."""
-
-    result: AcceptanceResult
-    files: ReportFiles
+    return Judged(report, files)
 
 
 def acceptance(
     cloud_path: Path, spec: str | Path, out: Path, *, calibration_path: Path | None = None
-) -> AcceptanceRun:
+) -> Judged[AcceptanceResult]:
     """PF, PS, SD and F of a scan of a sphere bar and a plate against the spec's MPEs."""
     result, files = _judge_cloud(
         "acceptance", cloud_path, spec, out, calibration_path, _accept, write_acceptance_report
     )
-    return AcceptanceRun(result, files)
+    return Judged(result, files)
 
 
 # --------------------------------------------------------------------------------------------

@@ -18,6 +18,7 @@ __all__ = [
     "atomic_output",
     "check_outputs_apart",
     "commit_together",
+    "read_json_object",
     "write_json_atomic",
     "write_text_atomic",
 ]
@@ -160,3 +161,27 @@ def check_outputs_apart(inputs: Iterable[str | os.PathLike[str]], outputs: Itera
             inside = i.is_dir() and (o == i or i in o.parents)
             if o == i or inside or _same_file(o, i):
                 raise InputError(out, f"would overwrite the input {i}; write it elsewhere")
+
+
+def read_json_object(
+    path: str | os.PathLike[str], missing: str = "file not found"
+) -> dict[str, Any]:
+    """Read a JSON file that must hold one object; every failure is an :class:`InputError`.
+
+    ``missing`` is the reason given when the file does not exist. Invalid JSON names its
+    line; a document nested too deep to parse (a hostile or broken file) is refused too.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(p, missing)
+    try:
+        obj = json.loads(p.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(p, f"cannot read: {exc}") from None
+    except json.JSONDecodeError as exc:
+        raise InputError(p, f"not valid JSON (line {exc.lineno}: {exc.msg})") from None
+    except RecursionError:
+        raise InputError(p, "not valid JSON (nested too deep)") from None
+    if not isinstance(obj, dict):
+        raise InputError(p, f"expected a JSON object, got {type(obj).__name__}")
+    return obj

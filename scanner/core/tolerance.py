@@ -15,6 +15,7 @@ __all__ = [
     "STATUS_FAIL",
     "STATUS_NA",
     "STATUS_PASS",
+    "RowCounts",
     "Status",
     "ToleranceRow",
     "format_tolerance",
@@ -127,3 +128,32 @@ class ToleranceRow:
             "status": self.final_status,
             "note": self.note,
         }
+
+
+class RowCounts:
+    """Counts and the verdict of a result made of :class:`ToleranceRow` s (its ``rows``).
+
+    A row that could not be evaluated (``error``) counts as failed; ``n/a`` (no tolerance)
+    as neither.
+    """
+
+    @property
+    def rows(self) -> list[ToleranceRow]:
+        raise NotImplementedError
+
+    @property
+    def n_passed(self) -> int:
+        return sum(r.final_status == STATUS_PASS for r in self.rows)
+
+    @property
+    def n_failed(self) -> int:
+        return sum(r.final_status in (STATUS_FAIL, STATUS_ERROR) for r in self.rows)
+
+    @property
+    def n_not_judged(self) -> int:
+        return sum(r.final_status == STATUS_NA for r in self.rows)
+
+    @property
+    def passed(self) -> bool:
+        """True when no row failed or could not be evaluated."""
+        return self.n_failed == 0

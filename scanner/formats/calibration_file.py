@@ -15,7 +15,6 @@ file does not give them) and the whole record as written, for the reports.
 
 from __future__ import annotations
 
-import json
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -26,7 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanner.core.conventions import check_transform
-from scanner.core.fileio import InputError, write_json_atomic
+from scanner.core.fileio import InputError, read_json_object, write_json_atomic
 
 __all__ = [
     "FORMAT",
@@ -202,17 +201,9 @@ def read_calibration(path: str | os.PathLike[str]) -> Calibration:
         ``"<path>: <reason>"`` for a missing file, invalid JSON, wrong format or bad values.
     """
     p = Path(path)
-    if not p.is_file():
-        raise InputError(p, "calibration file not found")
-    try:
-        obj = json.loads(p.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(p, f"cannot read: {exc}") from None
-    except json.JSONDecodeError as exc:
-        raise InputError(p, f"not valid JSON (line {exc.lineno}: {exc.msg})") from None
-    if not isinstance(obj, dict) or obj.get("format") != FORMAT:
-        got = obj.get("format") if isinstance(obj, dict) else type(obj).__name__
-        raise InputError(p, f"format: expected {FORMAT!r}, got {got!r}")
+    obj = read_json_object(p, "calibration file not found")
+    if obj.get("format") != FORMAT:
+        raise InputError(p, f"format: expected {FORMAT!r}, got {obj.get('format')!r}")
     try:
         cam = obj["camera"]
         plane = obj["light_plane"]

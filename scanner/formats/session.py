@@ -34,7 +34,7 @@ from scanner.core.conventions import (
     rotation_columns,
     transform_to_pose,
 )
-from scanner.core.fileio import InputError, write_text_atomic
+from scanner.core.fileio import InputError, read_json_object, write_text_atomic
 from scanner.core.images import image_size, load_gray_image, load_laser_images
 from scanner.core.targets import TargetSpec, parse_target, target_to_json
 
@@ -121,15 +121,7 @@ def _read_session_json(root: Path) -> dict[str, Any]:
         raise InputError(root, "session folder not found")
     if not path.is_file():
         raise InputError(path, "missing (a capture session needs session.json and frames.csv)")
-    try:
-        meta = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(path, f"cannot read: {exc}") from None
-    except json.JSONDecodeError as exc:
-        raise InputError(path, f"not valid JSON (line {exc.lineno}: {exc.msg})") from None
-    if not isinstance(meta, dict):
-        raise InputError(path, "expected a JSON object")
-    return meta
+    return read_json_object(path)
 
 
 def _parse_float(text: str, path: Path, line: int, column: str) -> float:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-__all__ = ["add_calibration", "add_out", "add_session", "positive_int"]
+__all__ = ["add_calibration", "add_cloud_judging", "add_out", "add_session", "positive_int"]
 
 
 def positive_int(text: str) -> int:
@@ -40,3 +40,14 @@ def add_calibration(p: argparse.ArgumentParser, required: bool = True) -> None:
 
 def add_out(p: argparse.ArgumentParser, what: str) -> None:
     p.add_argument("--out", type=Path, required=True, help=what)
+
+
+def add_cloud_judging(p: argparse.ArgumentParser, option: str, what: str, strict: str) -> None:
+    """The arguments of a command that judges a cloud against a config (plan or spec)."""
+    p.add_argument("cloud", type=Path, help="point cloud (.ply, .pcd, .e57, .xyz, .npy, ...)")
+    p.add_argument(
+        option, required=True, help=f"{what}: a TOML file, or the name of one in configs/plans/"
+    )
+    add_out(p, "result to write (.json; .csv and .html beside)")
+    add_calibration(p, required=False)
+    p.add_argument("--strict", action="store_true", help=f"exit 1 when {strict}")

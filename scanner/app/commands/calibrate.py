@@ -13,14 +13,12 @@ from pathlib import Path
 from scanner.app import stages
 from scanner.app.commands import add_out, add_session
 
+SUMMARY = "calibrate camera, light plane and hand-eye from a calibration session"
+DESCRIPTION = "Calibrate intrinsics, the laser light plane and the hand-eye transform (flange_from_cam) from a scan-session/1 calibration folder."
+
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "calibrate",
-        help="calibrate camera, light plane and hand-eye from a calibration session",
-        description="Calibrate intrinsics, the laser light plane and the hand-eye transform "
-        "(flange_from_cam) from a scan-session/1 calibration folder.",
-    )
+    p = sub.add_parser("calibrate", help=SUMMARY, description=DESCRIPTION)
     add_session(p, "calibration")
     add_out(p, "calibration file to write (JSON)")
     p.add_argument(

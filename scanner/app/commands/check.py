@@ -8,14 +8,12 @@ from pathlib import Path
 from scanner.app import stages
 from scanner.app.commands import add_calibration, add_out, add_session
 
+SUMMARY = "measure the target's largest diameter (EF) with the calibrated sensor"
+DESCRIPTION = "The paper's EF check on a `check` session: |EF| against the nominal diameter per laser image, and the spread of the target centre O in the base frame."
+
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "check",
-        help="measure the target's largest diameter (EF) with the calibrated sensor",
-        description="The paper's EF check on a `check` session: |EF| against the nominal "
-        "diameter per laser image, and the spread of the target centre O in the base frame.",
-    )
+    p = sub.add_parser("check", help=SUMMARY, description=DESCRIPTION)
     add_session(p, "check")
     add_calibration(p)
     add_out(p, "result file to write (JSON)")

@@ -7,15 +7,12 @@ from pathlib import Path
 
 from scanner.app.demo import run_demo
 
+SUMMARY = "run the whole job on the virtual cell and write a report under reports/"
+DESCRIPTION = "Simulate a capture on the virtual cell, calibrate, run the EF check, scan the sphere bar and plate, measure them against a plan, and write one HTML report linking everything. Each stage's artefact stays in the output folder."
+
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "demo",
-        help="run the whole job on the virtual cell and write a report under reports/",
-        description="Simulate a capture on the virtual cell, calibrate, run the EF check, scan the "
-        "sphere bar and plate, measure them against a plan, and write one HTML report linking "
-        "everything. Each stage's artefact stays in the output folder.",
-    )
+    p = sub.add_parser("demo", help=SUMMARY, description=DESCRIPTION)
     p.add_argument(
         "--cell",
         default="modern",

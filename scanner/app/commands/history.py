@@ -9,13 +9,12 @@ from scanner.app.plc.config import load_plc_config
 from scanner.app.plc.history import JobHistory
 from scanner.core.fileio import InputError
 
+SUMMARY = "list the jobs of the PLC service"
+DESCRIPTION = "List the jobs the PLC service recorded, newest first."
+
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "history",
-        help="list the jobs of the PLC service",
-        description="List the jobs the PLC service recorded, newest first.",
-    )
+    p = sub.add_parser("history", help=SUMMARY, description=DESCRIPTION)
     p.add_argument(
         "--db", default=None, help="job history file (default: storage.history_db of --config)"
     )

@@ -15,15 +15,12 @@ from scanner.app import stages
 from scanner.app.commands import add_calibration, add_out
 from scanner.scanning.pipeline import ScanOptions
 
+SUMMARY = "turn sweep sessions into a point cloud (base frame, mm)"
+DESCRIPTION = "Extract the laser stripe of every frame, triangulate it with the calibration, stitch the sweeps by the robot poses and write one cloud (.ply binary, .pcd or .e57)."
+
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "scan",
-        help="turn sweep sessions into a point cloud (base frame, mm)",
-        description="Extract the laser stripe of every frame, triangulate it with the "
-        "calibration, stitch the sweeps by the robot poses and write one cloud "
-        "(.ply binary, .pcd or .e57).",
-    )
+    p = sub.add_parser("scan", help=SUMMARY, description=DESCRIPTION)
     p.add_argument(
         "sessions", type=Path, nargs="+", metavar="SESSION", help="sweep session folder(s)"
     )

@@ -14,13 +14,12 @@ from scanner.app.plc.config import load_plc_config
 from scanner.app.plc.registers import format_register_map
 from scanner.app.plc.service import serve
 
+SUMMARY = "run the Modbus TCP service for a PLC"
+DESCRIPTION = "Run the Modbus TCP service for a PLC until SIGTERM or Ctrl-C."
+
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "serve",
-        help="run the Modbus TCP service for a PLC",
-        description="Run the Modbus TCP service for a PLC until SIGTERM or Ctrl-C.",
-    )
+    p = sub.add_parser("serve", help=SUMMARY, description=DESCRIPTION)
     p.add_argument("--config", default=None, help="PLC service config (default configs/plc.toml)")
     p.add_argument("--host", default=None, help="address to listen on (overrides the config)")
     p.add_argument("--port", type=int, default=None, help="TCP port (overrides the config)")

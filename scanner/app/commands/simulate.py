@@ -7,17 +7,12 @@ from pathlib import Path
 
 from scanner.app import stages
 
+SUMMARY = "render a virtual cell: calibration, check and sweep sessions plus truth.json"
+DESCRIPTION = "Simulate the robot, camera, laser and scene of a virtual cell (configs/cells) and write OUT/calibration, OUT/check, OUT/sweep (scan-session/1), OUT/truth.json, OUT/<session>_stripes.npz and OUT/calibration_true.json."
+
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "simulate",
-        help="render a virtual cell: calibration, check and sweep sessions plus truth.json",
-        description=(
-            "Simulate the robot, camera, laser and scene of a virtual cell (configs/cells) and "
-            "write OUT/calibration, OUT/check, OUT/sweep (scan-session/1), OUT/truth.json, "
-            "OUT/<session>_stripes.npz and OUT/calibration_true.json."
-        ),
-    )
+    p = sub.add_parser("simulate", help=SUMMARY, description=DESCRIPTION)
     p.add_argument("--cell", default="paper", help="cell name in configs/cells or a TOML path")
     p.add_argument("--out", required=True, type=Path, help="output folder")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")

@@ -14,17 +14,12 @@ from scanner.virtual_cell.cell import load_cell, load_target
 from scanner.virtual_cell.drawing import save_target_drawing
 from scanner.virtual_cell.scene import PrintedTarget
 
+SUMMARY = "draw a calibration target at 1:1 scale (SVG in mm, or PDF/PNG) with its spec"
+DESCRIPTION = "Draw the target of a virtual cell (--cell) or of a spec file (--spec: a configs/targets TOML, a target JSON or a session.json) at 1:1 scale. The spec is written beside the drawing as <stem>.json (the 'target' object of session.json)."
+
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "target",
-        help="draw a calibration target at 1:1 scale (SVG in mm, or PDF/PNG) with its spec",
-        description=(
-            "Draw the target of a virtual cell (--cell) or of a spec file (--spec: a "
-            "configs/targets TOML, a target JSON or a session.json) at 1:1 scale. The spec is "
-            "written beside the drawing as <stem>.json (the 'target' object of session.json)."
-        ),
-    )
+    p = sub.add_parser("target", help=SUMMARY, description=DESCRIPTION)
     p.add_argument("--out", required=True, type=Path, help="output .svg, .pdf or .png")
     src = p.add_mutually_exclusive_group()
     src.add_argument("--cell", default=None, help="virtual cell name or TOML (default: paper)")

@@ -339,7 +339,7 @@ class PipelineJobs:
         _call(stages.scan, [ctx.session_path], calibration, job.cloud)
         ctx.check_cancelled()
         run = _call(stages.measure, job.cloud, plan, job.measure, calibration_path=calibration)
-        report = run.report
+        report = run.result
         figures: list[float | None] = [
             None if r.actual is None else float(r.actual) * 1000.0 for r in report.rows[:3]
         ]

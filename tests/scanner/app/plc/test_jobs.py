@@ -149,7 +149,7 @@ def _fake_pipeline(monkeypatch: pytest.MonkeyPatch, quality: dict, rows: list) -
     def measure(cloud: Path, plan: Path, out: Path, **_: object) -> SimpleNamespace:
         for path in (out, out.with_suffix(".html")):
             path.write_text("{}", "utf-8")
-        return SimpleNamespace(report=report, files=stages.ReportFiles.beside(out))
+        return SimpleNamespace(result=report, files=stages.ReportFiles.beside(out))
 
     monkeypatch.setattr(stages, "calibrate", calibrate)
     monkeypatch.setattr(stages, "scan", scan)
