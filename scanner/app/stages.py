@@ -202,7 +202,7 @@ def calibrate(
         result.calibration, quality=replace(result.calibration.quality, record=record)
     )
     result = replace(result, calibration=calibration)
-    with commit_together(out.parent) as staged:
+    with commit_together() as staged:
         write_calibration(staged(out), calibration)
         if report_path is not None:
             staged_report = staged(report_path)
@@ -251,7 +251,7 @@ def check(
     data["provenance"] = provenance(
         "check", {"session": Path(session_dir), "calibration": Path(calibration_path)}
     )
-    with commit_together(out.parent) as staged:
+    with commit_together() as staged:
         write_json_atomic(staged(out), data)
         if report_path is not None:
             write_ef_report(result, staged(report_path))
@@ -364,7 +364,7 @@ def _judge_cloud(
     cloud_provenance["stage"] = provenance(stage, {"cloud": cloud_path, "plan": config_path})
     result = judge(points, config_path, cloud_provenance)
     result.cloud_path = str(cloud_path)
-    with commit_together(files.json_path.parent) as staged:
+    with commit_together() as staged:
         write(result, staged(files.json_path))
     return result, files
 

@@ -35,6 +35,10 @@ class InputError(ValueError):
         self.reason = reason
         super().__init__(reason if path is None else f"{path}: {reason}")
 
+    def __reduce__(self) -> tuple[Any, ...]:
+        # Crosses process boundaries whole (a worker pool's error stays an input error).
+        return (type(self), (self.path, self.reason))
+
 
 @contextlib.contextmanager
 def atomic_output(path: str | os.PathLike[str], suffix: str | None = None) -> Iterator[Path]:
@@ -105,37 +109,42 @@ def write_json_atomic(path: str | os.PathLike[str], obj: Any) -> None:
 
 
 @contextlib.contextmanager
-def commit_together(folder: str | os.PathLike[str]) -> Iterator[Callable[[Path], Path]]:
+def commit_together() -> Iterator[Callable[[Path], Path]]:
     """Write several outputs of one run so that they appear together or not at all.
 
-    Yields ``staged(final_path) -> Path``: where to write ``final_path`` for now (same name,
-    in a hidden folder beside ``folder``'s outputs). Writers that derive sibling names from
-    their path (``x.json`` -> ``x.csv``, ``x.html``) can be handed the staged path. On
-    success every staged file is renamed onto its final path; on any failure nothing final
-    is touched and the staged files are removed, so a failed run never replaces earlier
-    outputs with half of a new set.
+    Yields ``staged(final_path) -> Path``: where to write ``final_path`` for now (the same
+    name, in a hidden folder made beside it, so that a folder that cannot be written to fails
+    here, before anything is replaced). Writers that derive sibling names from their path
+    (``x.json`` -> ``x.csv``, ``x.html``) can be handed the staged path: every file written
+    into a staged folder is committed. On success the staged files are renamed onto their
+    final paths (same file system: each rename is atomic); on any failure nothing final is
+    touched and the staged files are removed, so a failed run never replaces earlier outputs
+    with half of a new set.
     """
-    root = Path(folder)
-    root.mkdir(parents=True, exist_ok=True)
-    stage = Path(tempfile.mkdtemp(prefix=".scanner-commit-", dir=root))
-    finals: dict[Path, Path] = {}
+    staging: list[Path] = []
 
     def staged(final: Path) -> Path:
         final = Path(final)
         final.parent.mkdir(parents=True, exist_ok=True)
-        sub = stage / str(len(finals))
-        sub.mkdir()
-        finals[sub] = final.parent
-        return sub / final.name
+        folder = Path(tempfile.mkdtemp(prefix=f".{final.name}.", dir=final.parent))
+        staging.append(folder)
+        return folder / final.name
 
+    umask = os.umask(0)
+    os.umask(umask)
     try:
         yield staged
-        for sub, parent in finals.items():
-            for produced in sorted(sub.iterdir()):
-                if not produced.name.startswith("."):
-                    os.replace(produced, parent / produced.name)
+        produced = [(f, folder.parent / f.name) for folder in staging for f in folder.iterdir()]
+        for _, final in produced:
+            if final.is_dir():
+                raise InputError(final, "is a folder; expected a file name to write")
+        for tmp, _ in produced:
+            os.chmod(tmp, 0o666 & ~umask)
+        for tmp, final in produced:
+            os.replace(tmp, final)
     finally:
-        shutil.rmtree(stage, ignore_errors=True)
+        for folder in staging:
+            shutil.rmtree(folder, ignore_errors=True)
 
 
 def _same_file(a: Path, b: Path) -> bool:

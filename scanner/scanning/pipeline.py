@@ -10,6 +10,7 @@ atomically.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
@@ -532,101 +533,103 @@ def scan_session(
         work_root = Path(work_dir)
     chunk_dir = work_root / key[:16]
 
-    t1 = time.perf_counter()
-    profiles, resumed, empty = scan_profiles(
-        frames, calibration, options, chunk_dir, key, progress=progress
-    )
-    t2 = time.perf_counter()
-
-    poses = np.stack([f.base_from_flange for f in frames])  # type: ignore[misc]
-    tri = Triangulator(calibration)
-    uv = np.column_stack([profiles["u"], profiles["v"]])
-    points = tri.points_base(uv, profiles["frame"], poses)
-    ok = np.all(np.isfinite(points), axis=1)
-    frame_pos = profiles["frame"][ok]
-    sweep_arr = np.asarray(sweep_of, dtype=np.int32)[frame_pos]
-    points = points[ok]
-    t3 = time.perf_counter()
-
-    warnings: list[str] = []
-    corrections = []
-    if options.icp and len(sweep_ids) > 1:
-        points, corrections = refine_sweeps(
-            points,
-            sweep_arr,
-            max_distance_mm=options.icp_max_distance_mm,
-            warn_translation_mm=options.icp_warn_translation_mm,
-            warn_rotation_deg=options.icp_warn_rotation_deg,
+    # The saved profiles go with the run unless kept on purpose (--workdir): after success,
+    # and after a failure too, so that a failed run leaves no work folder behind.
+    try:
+        t1 = time.perf_counter()
+        profiles, resumed, empty = scan_profiles(
+            frames, calibration, options, chunk_dir, key, progress=progress
         )
-        for c in corrections:
-            if c.applied and (
-                c.translation_mm > options.icp_warn_translation_mm
-                or c.rotation_deg > options.icp_warn_rotation_deg
-            ):
-                warnings.append(
-                    f"sweep {c.sweep}: ICP correction {c.translation_mm:.3f} mm, "
-                    f"{c.rotation_deg:.3f} deg (calibration or robot poses off?)"
-                )
-            elif not c.applied:
-                warnings.append(f"sweep {c.sweep}: not refined ({c.note})")
+        t2 = time.perf_counter()
 
-    frame_ids = np.array([f.id for f in frames], dtype=np.int32)
-    attributes = {
-        "intensity": profiles["intensity"][ok].astype(np.float32),
-        "width_px": profiles["width_px"][ok].astype(np.float32),
-        "flags": profiles["flags"][ok].astype(np.uint8),
-        "frame_id": frame_ids[frame_pos],
-        "sweep_id": sweep_arr,
-    }
-    if options.max_incidence_deg is not None:
-        points, attributes = _limit_incidence(
-            points, attributes, frame_pos, poses @ calibration.flange_from_cam, options
-        )
-    cloud = build_cloud(points, attributes)
-    cloud = filter_cloud(
-        cloud,
-        voxel_mm=options.voxel_mm,
-        outlier_neighbors=options.outlier_neighbors,
-        outlier_std_ratio=options.outlier_std_ratio,
-        normals_radius_mm=options.normals_radius_mm,
-    )
-    t4 = time.perf_counter()
-    n_points = len(cloud.point.positions)
-    if n_points == 0:
-        warnings.append("no stripe points found in any frame")
+        poses = np.stack([f.base_from_flange for f in frames])  # type: ignore[misc]
+        tri = Triangulator(calibration)
+        uv = np.column_stack([profiles["u"], profiles["v"]])
+        points = tri.points_base(uv, profiles["frame"], poses)
+        ok = np.all(np.isfinite(points), axis=1)
+        frame_pos = profiles["frame"][ok]
+        sweep_arr = np.asarray(sweep_of, dtype=np.int32)[frame_pos]
+        points = points[ok]
+        t3 = time.perf_counter()
 
-    written = None
-    if out_path is not None:
-        meta = {
-            "format": "robot-line-scanner cloud/1",
-            "frame": "base",
-            "units": "mm",
-            "calibration": str(cal_path.resolve()) if cal_path else None,
-            "calibration_sha256": hashlib.sha256(
-                json.dumps(calibration.to_json(), sort_keys=True, default=str).encode()
-            ).hexdigest(),
-            "sessions": [str(s.root.resolve()) for s in sessions],
-            "frames": len(frames),
-            "sweeps": len(sweep_ids),
-            "mode": options.mode,
-            "icp": [
-                {
-                    "sweep": c.sweep,
-                    "translation_mm": round(c.translation_mm, 4),
-                    "rotation_deg": round(c.rotation_deg, 4),
-                    "applied": c.applied,
-                }
-                for c in corrections
-            ],
+        warnings: list[str] = []
+        corrections = []
+        if options.icp and len(sweep_ids) > 1:
+            points, corrections = refine_sweeps(
+                points,
+                sweep_arr,
+                max_distance_mm=options.icp_max_distance_mm,
+                warn_translation_mm=options.icp_warn_translation_mm,
+                warn_rotation_deg=options.icp_warn_rotation_deg,
+            )
+            for c in corrections:
+                if c.applied and (
+                    c.translation_mm > options.icp_warn_translation_mm
+                    or c.rotation_deg > options.icp_warn_rotation_deg
+                ):
+                    warnings.append(
+                        f"sweep {c.sweep}: ICP correction {c.translation_mm:.3f} mm, "
+                        f"{c.rotation_deg:.3f} deg (calibration or robot poses off?)"
+                    )
+                elif not c.applied:
+                    warnings.append(f"sweep {c.sweep}: not refined ({c.note})")
+
+        frame_ids = np.array([f.id for f in frames], dtype=np.int32)
+        attributes = {
+            "intensity": profiles["intensity"][ok].astype(np.float32),
+            "width_px": profiles["width_px"][ok].astype(np.float32),
+            "flags": profiles["flags"][ok].astype(np.uint8),
+            "frame_id": frame_ids[frame_pos],
+            "sweep_id": sweep_arr,
         }
-        written = write_cloud(out_path, cloud, meta)
-    t5 = time.perf_counter()
-    if not keep_work:
-        shutil.rmtree(chunk_dir, ignore_errors=True)
-        try:
-            work_root.rmdir()
-        except OSError:
-            pass
+        if options.max_incidence_deg is not None:
+            points, attributes = _limit_incidence(
+                points, attributes, frame_pos, poses @ calibration.flange_from_cam, options
+            )
+        cloud = build_cloud(points, attributes)
+        cloud = filter_cloud(
+            cloud,
+            voxel_mm=options.voxel_mm,
+            outlier_neighbors=options.outlier_neighbors,
+            outlier_std_ratio=options.outlier_std_ratio,
+            normals_radius_mm=options.normals_radius_mm,
+        )
+        t4 = time.perf_counter()
+        n_points = len(cloud.point.positions)
+        if n_points == 0:
+            warnings.append("no stripe points found in any frame")
+
+        written = None
+        if out_path is not None:
+            meta = {
+                "format": "robot-line-scanner cloud/1",
+                "frame": "base",
+                "units": "mm",
+                "calibration": str(cal_path.resolve()) if cal_path else None,
+                "calibration_sha256": hashlib.sha256(
+                    json.dumps(calibration.to_json(), sort_keys=True, default=str).encode()
+                ).hexdigest(),
+                "sessions": [str(s.root.resolve()) for s in sessions],
+                "frames": len(frames),
+                "sweeps": len(sweep_ids),
+                "mode": options.mode,
+                "icp": [
+                    {
+                        "sweep": c.sweep,
+                        "translation_mm": round(c.translation_mm, 4),
+                        "rotation_deg": round(c.rotation_deg, 4),
+                        "applied": c.applied,
+                    }
+                    for c in corrections
+                ],
+            }
+            written = write_cloud(out_path, cloud, meta)
+        t5 = time.perf_counter()
+    finally:
+        if not keep_work:
+            shutil.rmtree(chunk_dir, ignore_errors=True)
+            with contextlib.suppress(OSError):
+                work_root.rmdir()
     for w in warnings:
         log.warning(w)
     return ScanResult(
