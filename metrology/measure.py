@@ -9,14 +9,12 @@ pictures. :mod:`metrology.report` writes it as JSON, CSV and a self-contained HT
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import math
 import os
 import time
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -37,24 +35,21 @@ from metrology.fit import (
 )
 from metrology.plan import FeatureSpec, MeasurementSpec, Plan, load_plan
 from scanner.core.conventions import check_points
-from scanner.core.fileio import InputError
 from scanner.core.tolerance import STATUS_ERROR, RowCounts, ToleranceRow
+from scanner.formats.clouds import read_points
 
 __all__ = [
-    "CLOUD_SUFFIXES",
     "FeatureResult",
     "MeasurementReport",
     "MeasurementResult",
     "evaluate_measurement",
     "fit_feature",
-    "load_cloud",
     "measure_cloud",
 ]
 
 log = logging.getLogger(__name__)
 
 FORMAT = "scan-measurement/1"
-CLOUD_SUFFIXES = (".ply", ".pcd", ".xyz", ".xyzn", ".pts", ".npy", ".txt", ".csv")
 
 #: RANSAC hypotheses for a feature with a nominal diameter must have a radius within this
 #: fraction of the nominal radius.
@@ -64,86 +59,6 @@ NOMINAL_RADIUS_SLACK = 0.25
 # --------------------------------------------------------------------------------------------
 # Clouds
 # --------------------------------------------------------------------------------------------
-
-
-def _ply_provenance(path: Path) -> dict[str, Any]:
-    """The ``obj_info`` JSON record the scanner writes into its PLY headers, if any."""
-    try:
-        with open(path, "rb") as fh:
-            for _ in range(200):
-                raw = fh.readline()
-                if not raw:
-                    break
-                line = raw.decode("ascii", errors="replace").strip()
-                if line.startswith("obj_info "):
-                    try:
-                        rec = json.loads(line[len("obj_info ") :])
-                    except json.JSONDecodeError:
-                        return {}
-                    return rec if isinstance(rec, dict) else {}
-                if line == "end_header":
-                    break
-    except OSError:
-        return {}
-    return {}
-
-
-def load_cloud(path: str | os.PathLike[str]) -> tuple[NDArray, dict[str, Any]]:
-    """Read a cloud's points (base frame, mm) and its provenance record.
-
-    Parameters
-    ----------
-    path : path
-        ``.ply`` / ``.pcd`` (Open3D), ``.xyz`` / ``.pts`` / ``.txt`` / ``.csv`` (columns x y z
-        first), or ``.npy`` (an ``(N, 3)`` array).
-
-    Returns
-    -------
-    points_base : ndarray, shape (N, 3)
-    provenance : dict
-        The scanner's record (calibration file, its hash, sessions), empty when absent.
-
-    Raises
-    ------
-    InputError
-        Missing file, unknown extension, unreadable or empty cloud, non-finite points.
-    """
-    p = Path(path)
-    if not p.is_file():
-        raise InputError(p, "point cloud not found")
-    ext = p.suffix.lower()
-    if ext not in CLOUD_SUFFIXES:
-        raise InputError(p, f"expected a cloud file ({', '.join(CLOUD_SUFFIXES)}), got {ext!r}")
-    provenance: dict[str, Any] = {}
-    try:
-        if ext in (".ply", ".pcd", ".xyz", ".xyzn", ".pts"):
-            import open3d as o3d
-
-            cloud = o3d.t.io.read_point_cloud(str(p))
-            pts = (
-                cloud.point.positions.numpy().astype(np.float64)
-                if "positions" in cloud.point
-                else np.zeros((0, 3))
-            )
-            if ext == ".ply":
-                provenance = _ply_provenance(p)
-            elif ext == ".pcd":
-                side = p.with_suffix(p.suffix + ".json")
-                if side.is_file():
-                    provenance = json.loads(side.read_text(encoding="utf-8"))
-        elif ext == ".npy":
-            pts = np.load(p, allow_pickle=False)
-        else:
-            delim = "," if ext == ".csv" else None
-            pts = np.loadtxt(p, delimiter=delim, ndmin=2, comments="#")[:, :3]
-    except (OSError, ValueError, UnicodeDecodeError) as exc:
-        raise InputError(p, f"cannot read point cloud ({exc})") from None
-    pts = np.asarray(pts, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
-        raise InputError(p, f"expected a non-empty (N, 3) cloud, got shape {pts.shape}")
-    if not np.all(np.isfinite(pts)):
-        raise InputError(p, "expected finite point coordinates, got NaN or inf")
-    return pts, provenance
 
 
 # --------------------------------------------------------------------------------------------
@@ -448,7 +363,7 @@ def cloud_points(
     prov: dict[str, Any] = {}
     if isinstance(cloud, str | os.PathLike):
         cloud_path = str(cloud)
-        points, prov = load_cloud(cloud)
+        points, prov = read_points(cloud)
     else:
         points = check_points(cloud, min_count=1, name="cloud")
     if provenance:
@@ -467,7 +382,7 @@ def measure_cloud(
     Parameters
     ----------
     cloud : path or array_like, shape (N, 3)
-        A cloud file (see :func:`load_cloud`) or base-frame points, mm.
+        A cloud file (see :func:`scanner.formats.clouds.read_points`) or base-frame points, mm.
     plan : Plan or path
         An inspection plan or its TOML file.
     provenance : dict, optional

@@ -32,7 +32,7 @@ from calibration.report import write_calibration_report
 from metrology.acceptance import AcceptanceResult, load_acceptance_spec, run_acceptance
 from metrology.ef_check import EFCheckResult, run_ef_check
 from metrology.ef_report import write_ef_report
-from metrology.measure import MeasurementReport, load_cloud, measure_cloud
+from metrology.measure import MeasurementReport, measure_cloud
 from metrology.plan import load_plan
 from metrology.report import write_acceptance_report, write_measurement_report
 from scanner import __version__
@@ -48,7 +48,7 @@ from scanner.formats.calibration_file import (
     read_calibration,
     write_calibration,
 )
-from scanner.formats.clouds import FORMATS
+from scanner.formats.clouds import FORMATS, read_points
 from scanner.formats.layout import report_beside
 from scanner.formats.session import read_session
 from scanner.scanning.pipeline import ScanOptions, ScanResult, check_scan_inputs, scan_session
@@ -314,7 +314,7 @@ def scan(
 def _cloud_with_provenance(
     cloud_path: Path, calibration_path: Path | None
 ) -> tuple[Any, dict[str, Any]]:
-    points, cloud_provenance = load_cloud(cloud_path)
+    points, cloud_provenance = read_points(cloud_path)
     if calibration_path is not None:
         if not Path(calibration_path).is_file():
             raise InputError(calibration_path, "calibration file not found")

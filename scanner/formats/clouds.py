@@ -23,13 +23,31 @@ import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
 
-from scanner.core.fileio import atomic_output, write_json_atomic
+from scanner.core.fileio import InputError, atomic_output, write_json_atomic
 
-__all__ = ["FORMATS", "cloud_arrays", "read_cloud", "write_cloud"]
+__all__ = [
+    "CLOUD_SUFFIXES",
+    "FORMATS",
+    "check_ply",
+    "cloud_arrays",
+    "read_cloud",
+    "read_ply_metadata",
+    "read_points",
+    "write_cloud",
+]
 
 log = logging.getLogger(__name__)
 
 FORMATS = (".ply", ".pcd", ".e57")
+#: What :func:`read_points` reads: the scanner's formats and plain point lists.
+CLOUD_SUFFIXES = (".ply", ".pcd", ".e57", ".xyz", ".xyzn", ".pts", ".npy", ".txt", ".csv")
+
+#: Bytes of each PLY scalar type.
+_PLY_SIZES = {
+    "char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2,
+    "uint16": 2, "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4,
+    "double": 8, "float64": 8,
+}  # fmt: skip
 
 _PLY_TYPES = {
     np.dtype(np.float64): "double",
@@ -222,13 +240,150 @@ def read_cloud(path: str | os.PathLike[str]) -> o3d.t.geometry.PointCloud:
     return cloud
 
 
-def read_ply_metadata(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """The provenance record of a PLY written by :func:`write_cloud` (its ``obj_info`` line)."""
+def _read_ply_header(path: Path) -> tuple[list[str], int]:
+    """The header lines of a PLY file and the byte offset where its data starts."""
+    lines: list[str] = []
     with open(path, "rb") as fh:
-        for raw in fh:
-            line = raw.decode("ascii", errors="replace").rstrip("\n")
-            if line.startswith("obj_info "):
-                return json.loads(line[len("obj_info ") :])
+        if fh.readline().strip() != b"ply":
+            raise InputError(path, "not a PLY file (no 'ply' magic line)")
+        lines.append("ply")
+        for _ in range(10_000):
+            raw = fh.readline()
+            if not raw:
+                raise InputError(path, "truncated PLY header (no end_header)")
+            line = raw.decode("ascii", errors="replace").strip()
+            lines.append(line)
             if line == "end_header":
-                break
+                return lines, fh.tell()
+    raise InputError(path, "PLY header too long (no end_header in 10000 lines)")
+
+
+def check_ply(path: str | os.PathLike[str]) -> int:
+    """Check that a PLY file holds the data its header declares; return its vertex count.
+
+    A binary file must be exactly as long as its elements' rows (when every property is a
+    scalar); an ASCII file must hold at least a line per declared row.
+
+    Raises
+    ------
+    InputError
+        Truncated or over-declared data, an unknown format or property type.
+    """
+    p = Path(path)
+    lines, data_start = _read_ply_header(p)
+    fmt = next((ln.split()[1] for ln in lines if ln.startswith("format ")), None)
+    elements: list[list] = []  # [name, count, row bytes or None for lists]
+    for ln in lines:
+        words = ln.split()
+        if words[:1] == ["element"] and len(words) == 3:
+            try:
+                elements.append([words[1], int(words[2]), 0])
+            except ValueError:
+                raise InputError(p, f"PLY header: bad element line {ln!r}") from None
+        elif words[:1] == ["property"] and elements:
+            if words[1] == "list":
+                elements[-1][2] = None
+            elif elements[-1][2] is not None:
+                if words[1] not in _PLY_SIZES:
+                    raise InputError(p, f"PLY header: unknown property type {words[1]!r}")
+                elements[-1][2] += _PLY_SIZES[words[1]]
+    vertices = next((e[1] for e in elements if e[0] == "vertex"), 0)
+    if fmt in ("binary_little_endian", "binary_big_endian"):
+        if all(e[2] is not None for e in elements):
+            expected = data_start + sum(e[1] * e[2] for e in elements)
+            size = p.stat().st_size
+            if size != expected:
+                raise InputError(
+                    p,
+                    f"PLY data is {size - data_start} bytes, its header declares "
+                    f"{expected - data_start} ({vertices} vertices): "
+                    f"{'truncated' if size < expected else 'unexpected trailing data'}",
+                )
+    elif fmt == "ascii":
+        with open(p, "rb") as fh:
+            fh.seek(data_start)
+            rows = sum(1 for raw in fh if raw.strip())
+        declared = sum(e[1] for e in elements)
+        if rows < declared:
+            raise InputError(p, f"PLY holds {rows} data lines, its header declares {declared}")
+    else:
+        raise InputError(p, f"PLY header: unknown format {fmt!r}")
+    return vertices
+
+
+def read_ply_metadata(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """The provenance record of a PLY written by :func:`write_cloud` (its ``obj_info`` line),
+    empty when there is none or it is not a JSON object."""
+    lines, _ = _read_ply_header(Path(path))
+    for line in lines:
+        if line.startswith("obj_info "):
+            try:
+                record = json.loads(line[len("obj_info ") :])
+            except json.JSONDecodeError:
+                return {}
+            return record if isinstance(record, dict) else {}
     return {}
+
+
+def _read_provenance(p: Path, ext: str) -> dict[str, Any]:
+    if ext == ".ply":
+        return read_ply_metadata(p)
+    side = p.with_suffix(p.suffix + ".json")
+    if ext == ".pcd" and side.is_file():
+        try:
+            record = json.loads(side.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            return {}
+        return record if isinstance(record, dict) else {}
+    return {}
+
+
+def read_points(path: str | os.PathLike[str]) -> tuple[NDArray, dict[str, Any]]:
+    """Read a cloud's points (base frame, mm) and its provenance record, checked.
+
+    Parameters
+    ----------
+    path : path
+        ``.ply`` / ``.pcd`` / ``.e57`` (as :func:`write_cloud` writes them, or from another
+        tool), ``.xyz`` / ``.pts`` / ``.txt`` / ``.csv`` (columns x y z first), or ``.npy``
+        (an ``(N, 3)`` array).
+
+    Returns
+    -------
+    points : ndarray, shape (N, 3)
+    provenance : dict
+        The scanner's record (calibration file, its hash, sessions), empty when absent.
+
+    Raises
+    ------
+    InputError
+        Missing file, unknown extension, a PLY whose data does not match its header, an
+        unreadable or empty cloud, non-finite points.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(p, "point cloud not found")
+    ext = p.suffix.lower()
+    if ext not in CLOUD_SUFFIXES:
+        raise InputError(p, f"expected a cloud file ({', '.join(CLOUD_SUFFIXES)}), got {ext!r}")
+    declared = check_ply(p) if ext == ".ply" else None
+    try:
+        if ext in (".ply", ".pcd", ".e57", ".xyz", ".xyzn", ".pts"):
+            cloud = read_cloud(p) if ext == ".e57" else o3d.t.io.read_point_cloud(str(p))
+            positions = cloud.point.positions.numpy() if "positions" in cloud.point else None
+            pts = np.zeros((0, 3)) if positions is None else positions
+        elif ext == ".npy":
+            pts = np.load(p, allow_pickle=False)
+        else:
+            pts = np.loadtxt(p, delimiter="," if ext == ".csv" else None, ndmin=2, comments="#")
+            pts = pts[:, :3]
+    except (OSError, ValueError, UnicodeDecodeError, RuntimeError) as exc:
+        raise InputError(p, f"cannot read point cloud ({exc})") from None
+    pts = np.asarray(pts, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
+        raise InputError(p, f"expected a non-empty (N, 3) cloud, got shape {pts.shape}")
+    if declared is not None and len(pts) != declared:
+        raise InputError(p, f"read {len(pts)} points, the PLY header declares {declared}")
+    if not np.all(np.isfinite(pts)):
+        raise InputError(p, "expected finite point coordinates, got NaN or inf")
+    return pts, _read_provenance(p, ext)

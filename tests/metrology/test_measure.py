@@ -7,11 +7,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from metrology.measure import load_cloud, measure_cloud
+from metrology.measure import measure_cloud
 from metrology.plan import load_plan
 from scanner.app.cli import main
 from scanner.core.config import CONFIG_DIR
 from scanner.core.fileio import InputError
+from scanner.formats.clouds import read_points
 
 PAPER_PLAN = CONFIG_DIR / "plans" / "paper_sweep.toml"
 
@@ -171,7 +172,7 @@ def test_load_cloud_reads_each_format(tmp_path: Path, suffix: str):
         np.save(path, pts)
     else:
         np.savetxt(path, pts, delimiter="," if suffix == ".csv" else " ")
-    loaded, prov = load_cloud(path)
+    loaded, prov = read_points(path)
     assert loaded.shape == (50, 3)
     np.testing.assert_allclose(loaded, pts, atol=1e-4 if suffix == ".pcd" else 1e-9)
     assert prov == {}
@@ -186,7 +187,7 @@ def test_load_cloud_reads_the_scanner_provenance_record(tmp_path: Path):
         "0 0 0\n1 0 0\n0 1 0\n"
     )
     path.write_text(header)
-    pts, prov = load_cloud(path)
+    pts, prov = read_points(path)
     assert pts.shape == (3, 3)
     assert prov["calibration"] == "/x/calib.json"
 
@@ -206,7 +207,7 @@ def test_load_cloud_refuses_bad_files(tmp_path: Path, name, content, words):
     if content is not None:
         path.write_text(content)
     with pytest.raises(InputError, match=words):
-        load_cloud(path)
+        read_points(path)
 
 
 def test_measure_command_writes_json_csv_html(tmp_path: Path, capsys, monkeypatch):
