@@ -205,15 +205,34 @@ def read_session(root: str | os.PathLike[str], check_images: bool = True) -> Ses
     return Session(root, kind, width, height, frames, rotation, target, extra)
 
 
+#: No robot reaches farther than this from its base: a pose beyond it is a unit or typing error.
+WORKSPACE_LIMIT_MM = 1.0e5
+
+#: Set to 1 to accept image paths in frames.csv that leave the session folder.
+OUTSIDE_IMAGES_ENV = "SCANNER_ALLOW_OUTSIDE_IMAGES"
+
+
+def _leaves(rel: str) -> bool:
+    """Whether a frames.csv image path points outside its session folder."""
+    norm = os.path.normpath(rel)
+    return os.path.isabs(rel) or norm == ".." or norm.startswith(".." + os.sep)
+
+
 def _read_frames(
     root: Path, rotation: RotationConvention | None, width: int, height: int, check_images: bool
 ) -> list[Frame]:
     path = root / "frames.csv"
+    images_outside = os.environ.get(OUTSIDE_IMAGES_ENV) == "1"
     if not path.is_file():
         raise InputError(path, "missing (a capture session needs session.json and frames.csv)")
     try:
-        with open(path, newline="", encoding="utf-8") as fh:
-            rows = list(csv.reader(fh))
+        # utf-8-sig: Excel's "CSV UTF-8" starts with a byte-order mark.
+        with open(path, newline="", encoding="utf-8-sig") as fh:
+            text = fh.read()
+        if "\x00" in text:
+            line = text.count("\n", 0, text.index("\x00")) + 1
+            raise InputError(path, f"row {line}: a NUL byte (not a text CSV file?)")
+        rows = list(csv.reader(text.splitlines()))
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
         raise InputError(path, f"cannot read: {exc}") from None
     if not rows:
@@ -240,6 +259,12 @@ def _read_frames(
     for line, row in enumerate(rows[1:], start=2):
         if not row or all(not c.strip() for c in row):
             continue
+        if len(row) > len(header):
+            raise _fail(
+                path,
+                f"row {line}: expected at most {len(header)} cells (the header's), got "
+                f"{len(row)} (a decimal comma in a number?)",
+            )
 
         def cell(name: str, row: list[str] = row) -> str:
             i = col.get(name)
@@ -265,6 +290,12 @@ def _read_frames(
             if not rel:
                 images[name] = None
                 continue
+            if not images_outside and _leaves(rel):
+                raise _fail(
+                    path,
+                    f"row {line}, column {name!r}: image {rel!r} is outside the session folder "
+                    f"(set {OUTSIDE_IMAGES_ENV}=1 to allow it)",
+                )
             img_path = (root / rel).resolve()
             if check_images:
                 if not img_path.is_file():
@@ -298,6 +329,13 @@ def _read_frames(
                     f"row {line}, column {empty[0]!r}: empty while other pose columns are given",
                 )
             values = [_parse_float(t, path, line, c) for c, t in zip(pose_cols, pose_texts)]
+            far = [c for c, v in zip(pose_cols[:3], values[:3]) if abs(v) > WORKSPACE_LIMIT_MM]
+            if far:
+                raise _fail(
+                    path,
+                    f"row {line}, column {far[0]!r}: expected a position within "
+                    f"{WORKSPACE_LIMIT_MM:g} mm of the robot base, got {values[pose_cols.index(far[0])]:g}",
+                )
             try:
                 base_from_flange = pose_to_transform(values[:3], values[3:], rotation)
             except ValueError as exc:

@@ -88,6 +88,23 @@ def set_cell(lines, row, column, value):
             "header: missing column 'laser_image'",
         ),
         (lambda ls: [ls[0].replace(",rz", ",rzz"), *ls[1:]], "missing pose column(s) rz"),
+        (
+            lambda ls: set_cell(ls, 2, "x", "606,86"),  # a decimal comma splits the cell
+            "row 2: expected at most",
+        ),
+        (lambda ls: set_cell(ls, 3, "z", "1e308"), "row 3, column 'z': expected a position within"),
+        (
+            lambda ls: set_cell(ls, 2, "laser_image", "../../etc/passwd"),
+            "row 2, column 'laser_image': image '../../etc/passwd' is outside the session folder",
+        ),
+        (
+            lambda ls: set_cell(ls, 2, "target_image", "/etc/passwd"),
+            "image '/etc/passwd' is outside the session folder",
+        ),
+        (
+            lambda ls: [ls[0], ls[1].replace("images", "ima\x00ges", 1), *ls[2:]],
+            "row 2: a NUL byte",
+        ),
     ],
 )
 def test_bad_frames_csv_names_file_row_and_column(tmp_path, edit, message):
@@ -184,3 +201,23 @@ def test_session_written_from_a_relative_folder_reads_back(tmp_path, monkeypatch
     write_session(root, "calibration", 64, 48, frames, None, TARGET)
     assert "images/t0.png" in (root / "frames.csv").read_text()
     assert read_session(root).frames[0].target_image == (tmp_path / root / "images" / "t0.png")
+
+
+def test_an_excel_byte_order_mark_is_read(tmp_path):
+    root, poses = make_session(tmp_path)
+    csv_path = root / "frames.csv"
+    csv_path.write_bytes(b"\xef\xbb\xbf" + csv_path.read_bytes())
+    session = read_session(root)
+    assert [f.id for f in session.frames] == [0, 1, 2, 3]
+    np.testing.assert_allclose(session.frames[0].base_from_flange, poses[0], atol=1e-9)
+
+
+def test_images_outside_the_folder_are_read_when_allowed(tmp_path, monkeypatch):
+    root, _ = make_session(tmp_path / "S")
+    shared = tmp_path / "shared.png"
+    (root / "images" / "t0.png").rename(shared)
+    rewrite_csv(root, lambda ls: set_cell(ls, 2, "target_image", "../shared.png"))
+    with pytest.raises(InputError, match="outside the session folder"):
+        read_session(root)
+    monkeypatch.setenv("SCANNER_ALLOW_OUTSIDE_IMAGES", "1")
+    assert read_session(root).frames[0].target_image == shared.resolve()
