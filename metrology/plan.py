@@ -74,9 +74,21 @@ DIRECTION_KINDS = ("plane", "line", "cylinder")
 DIAMETER_KINDS = ("sphere", "cylinder", "circle")
 
 
+#: No length a plan names is larger than this (mm): a workspace bound, not a tolerance.
+LENGTH_LIMIT_MM = 1.0e5
+
+
 def _finite(values: tuple[float, ...] | None, where: str) -> None:
     if values is not None and not all(math.isfinite(v) for v in values):
         raise ValueError(f"{where}: expected finite numbers, got {list(values)}")
+
+
+def _plausible(value: float | None, where: str) -> None:
+    """A finite value within :data:`LENGTH_LIMIT_MM` (angles too stay far below it)."""
+    if value is not None and not (math.isfinite(value) and abs(value) <= LENGTH_LIMIT_MM):
+        raise ValueError(
+            f"{where}: expected a finite number within ±{LENGTH_LIMIT_MM:g}, got {value}"
+        )
 
 
 @dataclass(frozen=True)
@@ -217,6 +229,8 @@ class MeasurementSpec:
                 f"got {got}"
             )
         _finite(self.point_mm, "point_mm")
+        for key in ("nominal", "tolerance", "lower", "upper"):
+            _plausible(getattr(self, key), key)
         if self.tolerance is not None and (self.lower is not None or self.upper is not None):
             raise ValueError("tolerance: expected either tolerance or lower/upper, got both")
         if self.tolerance is not None and not (self.tolerance >= 0):

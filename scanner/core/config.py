@@ -8,6 +8,7 @@ line: ``configs/plan.toml, line 12, features[1].radius_mm: expected a number, go
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import re
 import sys
@@ -157,6 +158,10 @@ def _convert(value: Any, tp: Any, where: str) -> Any:
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise ValueError(f"{where}: expected a number, got {value!r}")
+        if not math.isfinite(value):
+            # TOML allows nan and inf; no setting of ours means either (a nan timeout would
+            # disable a watchdog, an inf tolerance accept anything).
+            raise ValueError(f"{where}: expected a finite number, got {value!r}")
         return float(value)
     if tp is str:
         if not isinstance(value, str):

@@ -38,6 +38,18 @@ __all__ = [
 
 FORMAT = "scan-calibration/1"
 
+# Physical bounds: a value beyond them is a typing, unit or file error, not a camera.
+#: Focal length, px (a 100 Mpx sensor behind a long telephoto stays far below).
+MAX_FOCAL_PX = 1.0e6
+#: Image side, px.
+MAX_IMAGE_PX = 100_000
+#: Any distortion coefficient of OpenCV's models.
+MAX_DISTORTION = 1.0e4
+#: Camera from flange, light plane from camera, mm.
+MAX_OFFSET_MM = 1.0e4
+#: The light plane from the camera centre, mm.
+MIN_PLANE_DISTANCE_MM = 1.0
+
 
 @dataclass(frozen=True)
 class LightPlane:
@@ -57,6 +69,11 @@ class LightPlane:
             raise ValueError("light_plane.normal: expected a non-zero vector")
         object.__setattr__(self, "normal", n / norm)
         object.__setattr__(self, "d", float(self.d) / norm)
+        if not MIN_PLANE_DISTANCE_MM <= abs(self.d) <= MAX_OFFSET_MM:
+            raise ValueError(
+                f"light_plane.d: expected the plane {MIN_PLANE_DISTANCE_MM:g} to {MAX_OFFSET_MM:g} "
+                f"mm from the camera centre (a plane through it images as a line), got {self.d:g}"
+            )
 
     @classmethod
     def from_coefficients(cls, a: float, b: float, c: float, d: float) -> LightPlane:
@@ -155,16 +172,30 @@ class Calibration:
             raise ValueError(f"camera.K: expected a finite 3x3 matrix, got shape {self.K.shape}")
         if self.K[0, 0] <= 0 or self.K[1, 1] <= 0 or not np.allclose(self.K[2], [0, 0, 1]):
             raise ValueError("camera.K: expected fx, fy > 0 and last row [0, 0, 1]")
+        if not (self.K[0, 0] <= MAX_FOCAL_PX and self.K[1, 1] <= MAX_FOCAL_PX):
+            raise ValueError(
+                f"camera.K: expected fx, fy <= {MAX_FOCAL_PX:g} px, got {self.K[0, 0]:g}, "
+                f"{self.K[1, 1]:g}"
+            )
         dist = np.asarray(self.dist, dtype=np.float64).reshape(-1)
         if dist.size not in (4, 5, 8, 12, 14) or not np.all(np.isfinite(dist)):
             raise ValueError(
                 f"camera.dist: expected OpenCV's 4, 5, 8, 12 or 14 coefficients, got {dist.size}"
             )
+        if np.any(np.abs(dist) > MAX_DISTORTION):
+            raise ValueError(
+                f"camera.dist: expected coefficients within ±{MAX_DISTORTION:g}, got {dist.tolist()}"
+            )
         self.dist = dist
         if not isinstance(self.quality, CalibrationQuality):
             self.quality = CalibrationQuality.from_json(self.quality)
         self.flange_from_cam = check_transform(self.flange_from_cam, "flange_from_cam", tol=1e-5)
-        if self.width <= 0 or self.height <= 0:
+        if np.linalg.norm(self.flange_from_cam[:3, 3]) > MAX_OFFSET_MM:
+            raise ValueError(
+                f"flange_from_cam: expected the camera within {MAX_OFFSET_MM:g} mm of the flange, "
+                f"got {np.linalg.norm(self.flange_from_cam[:3, 3]):g} mm"
+            )
+        if not (0 < self.width <= MAX_IMAGE_PX and 0 < self.height <= MAX_IMAGE_PX):
             raise ValueError(
                 f"camera: expected a positive image size, got {self.width}x{self.height}"
             )

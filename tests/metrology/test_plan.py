@@ -127,6 +127,10 @@ def test_form_tolerance_is_one_sided():
          ("colour = 3", 1)),
         ("nominal = { diameter_mm = 25.4 }", "nominal = { diameter_mm = 'big' }",
          "features[0].nominal.diameter_mm", "expected a number", ("diameter_mm = 'big'", 1)),
+        ("nominal = 15.0", "nominal = 1e308", "measurements[1].nominal",
+         "expected a finite number within", ("nominal = 1e308", 1)),
+        ("lower = -0.05", "lower = -inf", "measurements[1].lower",
+         "expected a finite number, got -inf", ("lower = -inf", 1)),
     ],
 )  # fmt: skip
 def test_errors_name_file_line_and_key(tmp_path: Path, old, new, key, words, anchor):

@@ -52,6 +52,11 @@ def test_valid_config_is_converted_by_type(tmp_path):
             "mode: expected 'fast' or 'precise'",
         ),
         ('name = "a"\n[limits\n', "not valid TOML"),
+        (
+            'name = "a"\n[limits]\ntolerance_mm = inf\n',
+            "line 3: limits.tolerance_mm: expected a finite number, got inf",
+        ),
+        ('name = "a"\n[limits]\ntolerance_mm = nan\n', "expected a finite number, got nan"),
     ],
 )
 def test_bad_config_names_file_line_and_key(tmp_path, text, message):

@@ -68,6 +68,11 @@ def test_calibration_file_round_trips(tmp_path):
             "camera.K: expected a finite 3x3 matrix",
         ),
         (lambda o: o.update(flange_from_cam=np.eye(3).tolist()), "flange_from_cam: expected a 4x4"),
+        (lambda o: o["camera"]["K"][0].__setitem__(0, 1e308), "camera.K: expected fx, fy <= "),
+        (lambda o: o["camera"]["dist"].__setitem__(0, 1e6), "camera.dist: expected coefficients"),
+        (lambda o: o["light_plane"].update(d=0.0), "light_plane.d: expected the plane 1 to"),
+        (lambda o: o["flange_from_cam"][2].__setitem__(3, 1e308), "flange_from_cam: expected the"),
+        (lambda o: o["camera"].update(width=10**9), "camera: expected a positive image size"),
     ],
 )
 def test_bad_calibration_file_is_refused_with_its_path(tmp_path, mutate, message):

@@ -5,6 +5,7 @@ from pathlib import Path
 import pytest
 
 from scanner.app.plc.config import load_plc_config
+from scanner.core.config import CONFIG_DIR as REPO_CONFIGS
 from scanner.core.config import ConfigError
 
 
@@ -36,4 +37,13 @@ def test_bad_config_names_the_key(tmp_path: Path, text: str, message: str):
     path = tmp_path / "plc.toml"
     path.write_text(text, encoding="utf-8")
     with pytest.raises(ConfigError, match=message):
+        load_plc_config(path)
+
+
+@pytest.mark.parametrize("key", ["heartbeat_timeout_s", "job_timeout_s"])
+def test_a_nan_timeout_cannot_disable_the_watchdog(tmp_path, key):
+    text = (REPO_CONFIGS / "plc.toml").read_text()
+    path = tmp_path / "plc.toml"
+    path.write_text(text.replace(f"{key} = ", f"{key} = nan  # was ", 1))
+    with pytest.raises(ConfigError, match=f"watchdog.{key}: expected a finite number"):
         load_plc_config(path)
