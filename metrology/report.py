@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanner.core.fileio import atomic_output, write_json_atomic
-from scanner.core.tolerance import ToleranceRow, format_value
+from scanner.core.tolerance import ToleranceRow, format_value, spreadsheet_safe
 from scanner.formats import html as rep
 from scanner.formats.calibration_file import read_calibration
 
@@ -297,7 +297,7 @@ def write_rows_csv(path: str | os.PathLike[str], rows: Sequence[ToleranceRow]) -
     writer.writerow(cols)
     for r in rows:
         j = r.to_json()
-        writer.writerow(["" if j[c] is None else j[c] for c in cols])
+        writer.writerow(["" if j[c] is None else spreadsheet_safe(j[c]) for c in cols])
     with atomic_output(path) as tmp:
         tmp.write_text(buf.getvalue(), encoding="utf-8")
 

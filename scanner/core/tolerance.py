@@ -20,6 +20,7 @@ __all__ = [
     "ToleranceRow",
     "format_tolerance",
     "format_value",
+    "spreadsheet_safe",
     "status_of",
 ]
 
@@ -157,3 +158,12 @@ class RowCounts:
     def passed(self) -> bool:
         """True when no row failed or could not be evaluated."""
         return self.n_failed == 0
+
+
+def spreadsheet_safe(cell: object) -> object:
+    """A CSV cell a spreadsheet shows as text: a string starting with ``= + - @`` (or a tab
+    or carriage return) would be evaluated as a formula, so it gets a leading apostrophe.
+    Numbers pass unchanged."""
+    if isinstance(cell, str) and cell[:1] in ("=", "+", "-", "@", "\t", "\r"):
+        return "'" + cell
+    return cell

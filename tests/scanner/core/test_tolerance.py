@@ -29,3 +29,11 @@ def test_row_json_has_the_same_numbers():
     j = row.to_json()
     assert j["deviation"] == pytest.approx(0.02)
     assert j["status"] == "pass"
+
+
+def test_csv_cells_that_a_spreadsheet_would_evaluate_are_quoted():
+    assert tol.spreadsheet_safe("=HYPERLINK(1)") == "'=HYPERLINK(1)"
+    for text in ("+1", "-x", "@SUM(A1)", "\tx"):
+        assert tol.spreadsheet_safe(text) == "'" + text
+    assert tol.spreadsheet_safe("sphere 1") == "sphere 1"
+    assert tol.spreadsheet_safe(-0.5) == -0.5  # numbers are numbers
