@@ -253,6 +253,8 @@ def aimed_view(
 def sweep_poses(cell: CellConfig, frames: int | None = None) -> tuple[NDArray, NDArray]:
     """Commanded ``base_from_cam`` of a linear sweep and its unit direction (base frame).
 
+    ``frames`` (default the cell's) spreads that many frames over the cell's path.
+
     The camera looks straight down at the table from ``sweep.standoff_mm``; it is turned so
     that the laser line on the table is perpendicular to the travel (then yawed by
     ``sweep.yaw_deg``), and the path is centred so that the middle frame's line passes through
@@ -285,7 +287,10 @@ def sweep_poses(cell: CellConfig, frames: int | None = None) -> tuple[NDArray, N
     centre[2] = sw.table_z_mm
     c_mid = centre - rot @ foot
     direction = rot @ travel_c
-    s = (np.arange(count) - (count - 1) / 2) * sw.step_mm
+    # Another frame count thins or densifies the cell's sweep over the same path: the objects
+    # stay inside it (a shorter path would leave them out of the cloud).
+    half_length = (sw.frames - 1) / 2 * sw.step_mm
+    s = np.linspace(-half_length, half_length, count) if count > 1 else np.zeros(1)
     out = np.tile(np.eye(4), (count, 1, 1))
     out[:, :3, :3] = rot
     out[:, :3, 3] = c_mid + s[:, None] * direction

@@ -154,3 +154,14 @@ def test_check_rows_keep_e_and_f_in_view(planned):
         along = np.array([n_t[1], -n_t[0], 0.0]) / np.hypot(n_t[0], n_t[1])
         ef = np.array([along, -along]) * spec.radius_mm
         assert np.all(cam.in_image(cam.project(transform_points(c_t, ef))))
+
+
+def test_another_frame_count_thins_the_same_sweep():
+    # The README's tour asks for 120 frames: the objects must stay inside the sweep.
+    cell = load_cell("paper")
+    full, direction = sweep_poses(cell)
+    thin, _ = sweep_poses(cell, 120)
+    assert len(thin) == 120
+    np.testing.assert_allclose(thin[[0, -1]], full[[0, -1]], atol=1e-9)
+    steps = np.diff(thin[:, :3, 3], axis=0) @ direction
+    np.testing.assert_allclose(steps, (cell.sweep.frames - 1) / 119 * cell.sweep.step_mm)
