@@ -51,7 +51,12 @@ def _features_figure(result: CalibrationResult, max_images: int = 3) -> str:
         ax.imshow(img, cmap="gray")
         ax.plot(obs.points_px[:, 0], obs.points_px[:, 1], "+", color="lime", ms=6)
         for name, p in obs.named_px.items():
-            ax.annotate(name, p, color="yellow", fontsize=10)
+            # Readable on the white card and on the dark surroundings alike.
+            ax.annotate(
+                name, p, xytext=(4, 4), textcoords="offset points", color="black",
+                fontsize=11, fontweight="bold",
+                bbox={"boxstyle": "round,pad=0.15", "fc": "#ffd60a", "ec": "black", "lw": 0.6},
+            )  # fmt: skip
         st = result.stripes.get(fid)
         if st is not None and len(st):
             ax.plot(st[::5, 0], st[::5, 1], ".", color="red", ms=1)

@@ -38,11 +38,12 @@ from scanner.core.camera import CameraModel, intersect_rays_with_plane
 from scanner.core.conventions import invert_transform, transform_points
 from scanner.core.fileio import InputError
 from scanner.core.targets import ConcentricCirclesTarget
+from scanner.core.tolerance import RowCounts, ToleranceRow
 from scanner.formats.calibration_file import Calibration
 from scanner.formats.session import Frame, Session
 from scanner.stripe.extract import StripeFlag, extract_stripe, orientation_from_calibration
 
-__all__ = ["EFCheckResult", "EFMeasurement", "measure_ef", "run_ef_check"]
+__all__ = ["EFCheckResult", "EFMeasurement", "EFTolerances", "measure_ef", "run_ef_check"]
 
 logger = logging.getLogger(__name__)
 
@@ -94,15 +95,48 @@ class EFMeasurement:
         return out
 
 
+@dataclass(frozen=True)
+class EFTolerances:
+    """When a recalibration check passes: each figure at most its limit (mm).
+
+    The defaults are those of the PLC service's ``[check]`` (``configs/plc.toml``).
+    """
+
+    max_mean_abs_mm: float = 0.10
+    max_abs_mm: float = 0.25
+    max_o_spread_mm: float = 0.50
+
+    def __post_init__(self) -> None:
+        for key in ("max_mean_abs_mm", "max_abs_mm", "max_o_spread_mm"):
+            value = getattr(self, key)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{key}: expected a positive number, got {value}")
+
+
 @dataclass
-class EFCheckResult:
-    """All measurements of a check session and their summary figures."""
+class EFCheckResult(RowCounts):
+    """All measurements of a check session, their summary figures and the verdict."""
 
     nominal_mm: float
     measurements: list[EFMeasurement]
     session: str = ""
     calibration: str = ""
     o_positions_base: NDArray = field(default_factory=lambda: np.zeros((0, 3)))
+    tolerances: EFTolerances = field(default_factory=EFTolerances)
+
+    @property
+    def rows(self) -> list[ToleranceRow]:
+        """The three judged figures, as the reports and the PLC show them."""
+        t = self.tolerances
+        figures = (
+            ("mean absolute EF error", self.mean_abs_error_mm, t.max_mean_abs_mm),
+            ("largest absolute EF error", self.max_abs_error_mm, t.max_abs_mm),
+            ("spread of O in the base frame", self.o_spread_mm, t.max_o_spread_mm),
+        )
+        return [
+            ToleranceRow(name, 0.0, None if math.isnan(v) else v, None, limit, unit="mm")
+            for name, v, limit in figures
+        ]
 
     @property
     def valid(self) -> list[EFMeasurement]:
@@ -150,6 +184,12 @@ class EFCheckResult:
 
         return {
             "nominal_mm": self.nominal_mm,
+            "verdict": "pass" if self.passed else "fail",
+            "tolerances_mm": {
+                "mean_abs_error": self.tolerances.max_mean_abs_mm,
+                "max_abs_error": self.tolerances.max_abs_mm,
+                "o_spread": self.tolerances.max_o_spread_mm,
+            },
             # The contract's list holds measured frames only; the others are listed with why.
             "measurements": [m.to_json() for m in self.valid],
             "failed": [{"id": m.id, "reason": m.reason} for m in self.measurements if not m.ok],
@@ -356,6 +396,7 @@ def run_ef_check(
     progress: bool = False,
     mode: str = "precise",
     calibration_source: str = "",
+    tolerances: EFTolerances | None = None,
 ) -> EFCheckResult:
     """Run the EF check on a ``check`` session with a calibration; write nothing.
 
@@ -370,6 +411,8 @@ def run_ef_check(
         Stripe extractor.
     calibration_source : str
         Where the calibration came from (its file), recorded in the result.
+    tolerances : EFTolerances, optional
+        What the verdict judges against (default :class:`EFTolerances`).
 
     Raises
     ------
@@ -398,6 +441,7 @@ def run_ef_check(
         session=str(session.root.resolve()),
         calibration=calibration_source,
         o_positions_base=o_positions,
+        tolerances=tolerances or EFTolerances(),
     )
     if not result.valid:
         reasons = "; ".join(f"frame {m.id}: {m.reason}" for m in measurements[:3])

@@ -61,7 +61,12 @@ def write_ef_report(result: EFCheckResult, path: str | os.PathLike[str]) -> Path
             ("paper's real cell, for comparison", "0.33 mm mean absolute, 0.21 % mean relative"),
         ]
     )
-    sections = [rep.section("Summary", body)]
+    verdict = rep.summary_line(result.rows, detail=f"{len(result.valid)} frames measured")
+    sections = [
+        verdict,
+        rep.section("Verdict", rep.tolerance_table(result.rows, decimals=4)),
+        rep.section("Summary", body),
+    ]
     sections.append(
         rep.section(
             "Length of EF (as the paper's Table III)",

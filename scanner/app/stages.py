@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 from calibration.pipeline import CalibrationResult, calibrate_session
 from calibration.report import write_calibration_report
 from metrology.acceptance import AcceptanceResult, load_acceptance_spec, run_acceptance
-from metrology.ef_check import EFCheckResult, run_ef_check
+from metrology.ef_check import EFCheckResult, EFTolerances, run_ef_check
 from metrology.ef_report import write_ef_report
 from metrology.measure import MeasurementReport, measure_cloud
 from metrology.plan import load_plan
@@ -230,6 +230,7 @@ def check(
     *,
     report: Path | Literal["beside"] | None = "beside",
     mode: Literal["fast", "precise"] = "precise",
+    tolerances: EFTolerances | None = None,
     progress: bool = False,
 ) -> CheckRun:
     """The paper's EF check on a ``check`` session; writes the result JSON and its report."""
@@ -246,6 +247,7 @@ def check(
         progress=progress,
         mode=mode,
         calibration_source=str(Path(calibration_path).resolve()),
+        tolerances=tolerances,
     )
     data = result.to_json()
     data["provenance"] = provenance(

@@ -56,7 +56,9 @@ def test_ef_result_file_keeps_the_contract(modern_check, tmp_path):
         assert m["error_mm"] == pytest.approx(m["length_mm"] - obj["nominal_mm"])
     assert obj["mean_abs_error_mm"] == pytest.approx(np.mean(np.abs(errors)))
     assert obj["mean_rel_error"] == pytest.approx(obj["mean_abs_error_mm"] / obj["nominal_mm"])
-    assert (tmp_path / "ef.html").is_file()
+    assert obj["verdict"] == "pass" and obj["tolerances_mm"]["mean_abs_error"] == 0.1
+    html_text = (tmp_path / "ef.html").read_text()
+    assert "PASS — 3 passed, 0 failed" in html_text
 
 
 def test_a_wrong_light_plane_shows_in_the_ef_error(modern_check, tmp_path):
@@ -67,6 +69,7 @@ def test_a_wrong_light_plane_shows_in_the_ef_error(modern_check, tmp_path):
     bad.write_text(json.dumps(calib))
     result = run_ef_check(read_session(modern_check / "check"), read_calibration(bad))
     assert result.mean_abs_error_mm > 0.1
+    assert not result.passed and result.rows[0].final_status == "fail"
 
 
 def test_a_sweep_session_is_refused(tmp_path, modern_check, capsys):

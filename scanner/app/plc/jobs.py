@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
+from metrology.ef_check import EFTolerances
 from scanner.app import stages
 from scanner.app.plc.config import (
     CalibrationGate,
@@ -50,7 +51,7 @@ __all__ = [
     "SessionSource",
     "VirtualCellSource",
     "calibration_gate",
-    "check_passed",
+    "ef_tolerances",
     "install_calibration",
     "make_source",
 ]
@@ -264,10 +265,13 @@ def _mm_to_um(value: float | None) -> float | None:
     return None if value is None else float(value) * 1000.0
 
 
-def check_passed(results_um: tuple[float | None, ...], tol: CheckTolerances) -> bool:
-    """Whether the three check figures (µm) are all known and within ``tol``."""
-    limits = (tol.max_mean_abs_um, tol.max_abs_um, tol.max_o_spread_um)
-    return all(v is not None and abs(v) <= lim for v, lim in zip(results_um, limits))
+def ef_tolerances(tol: CheckTolerances) -> EFTolerances:
+    """The service's check limits (µm, as the PLC reads the results) for the EF check."""
+    return EFTolerances(
+        max_mean_abs_mm=tol.max_mean_abs_um / 1000.0,
+        max_abs_mm=tol.max_abs_um / 1000.0,
+        max_o_spread_mm=tol.max_o_spread_um / 1000.0,
+    )
 
 
 class PipelineJobs:
@@ -304,7 +308,13 @@ class PipelineJobs:
         ctx.session_path = self.source.acquire("check", ctx)
         ctx.check_cancelled()
         job = JobLayout.of(ctx.work_dir)
-        run = _call(stages.check, ctx.session_path, calibration, job.check)
+        run = _call(
+            stages.check,
+            ctx.session_path,
+            calibration,
+            job.check,
+            tolerances=ef_tolerances(self.config.check),
+        )
         result = run.result
         results = (
             _mm_to_um(result.mean_abs_error_mm),
@@ -312,7 +322,7 @@ class PipelineJobs:
             _mm_to_um(result.o_spread_mm),
         )
         return JobOutcome(
-            passed=check_passed(results, self.config.check),
+            passed=result.passed,
             results_um=results,
             report_path=run.report_path or run.out_path,
             artefacts=(run.out_path,),

@@ -7,8 +7,10 @@ import threading
 from pathlib import Path
 from types import SimpleNamespace
 
+import numpy as np
 import pytest
 
+from metrology.ef_check import EFCheckResult, EFMeasurement
 from scanner.app import stages
 from scanner.app.plc.config import (
     CalibrationGate,
@@ -24,7 +26,7 @@ from scanner.app.plc.jobs import (
     JobError,
     PipelineJobs,
     calibration_gate,
-    check_passed,
+    ef_tolerances,
     install_calibration,
 )
 from scanner.app.plc.registers import ErrorCode
@@ -78,10 +80,19 @@ def test_install_calibration_keeps_the_old_one(tmp_path: Path):
 
 
 def test_check_passes_only_within_every_tolerance():
-    tol = CheckTolerances(max_mean_abs_um=10, max_abs_um=20, max_o_spread_um=30)
-    assert check_passed((10.0, -20.0, 30.0), tol)
-    assert not check_passed((10.1, 0.0, 0.0), tol)
-    assert not check_passed((1.0, 1.0, None), tol)
+    tol = ef_tolerances(CheckTolerances(max_mean_abs_um=10, max_abs_um=20, max_o_spread_um=30))
+
+    def result(errors_mm: list[float], o_spread_mm: float) -> EFCheckResult:
+        measurements = [
+            EFMeasurement(i, True, length_mm=100.0 + e, error_mm=e) for i, e in enumerate(errors_mm)
+        ]
+        o = np.array([[0.0, 0.0, 0.0], [o_spread_mm * 2, 0.0, 0.0]])
+        return EFCheckResult(100.0, measurements, o_positions_base=o, tolerances=tol)
+
+    assert result([0.0, -0.020], 0.030).passed  # mean 0.010, largest 0.020, spread 0.030
+    assert not result([0.0, -0.0202], 0.030).passed
+    assert not result([0.0, 0.0], 0.031).passed
+    assert not EFCheckResult(100.0, [], tolerances=tol).passed  # nothing measured: not proven
 
 
 def test_pipeline_jobs_say_why_they_cannot_start(tmp_path: Path):
