@@ -275,7 +275,7 @@ def _index_html(result: DemoResult, errors: Any, check: Any, measure: Any, accep
     )
     if acceptance is not None:
         body += rep.section(
-            "Acceptance",
-            f"<p>{'PASS' if acceptance.passed else 'FAIL'}: see the acceptance report.</p>",
+            "Acceptance test (VDI/VDE 2634-2): PF, PS, SD, F against their MPEs",
+            rep.summary_line(acceptance.rows) + rep.tolerance_table(acceptance.rows, decimals=4),
         )
     return rep.page("Robot laser-line scanner: demo on the virtual cell", body, subtitle=str(out))

@@ -7,11 +7,16 @@ import json
 import sys
 from pathlib import Path
 
-from scanner.core.fileio import InputError
+from scanner.core.fileio import InputError, check_outputs_apart
 from scanner.core.targets import TargetSpec, parse_target
 from scanner.virtual_cell.capture import printed_target
 from scanner.virtual_cell.cell import load_cell, load_target
-from scanner.virtual_cell.drawing import save_target_drawing
+from scanner.virtual_cell.drawing import (
+    PAGES_MM,
+    drawing_bounds_mm,
+    save_target_drawing,
+    smallest_page,
+)
 from scanner.virtual_cell.scene import PrintedTarget
 
 SUMMARY = "draw a calibration target at 1:1 scale (SVG in mm, or PDF/PNG) with its spec"
@@ -24,6 +29,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     src = p.add_mutually_exclusive_group()
     src.add_argument("--cell", default=None, help="virtual cell name or TOML (default: paper)")
     src.add_argument("--spec", type=Path, default=None, help="target spec file (.toml or .json)")
+    p.add_argument(
+        "--page",
+        choices=tuple(PAGES_MM),
+        default=None,
+        help="(.pdf) lay the drawing out at 100 %% on pages of this size: one page when it "
+        "fits, else overlapping tiles with alignment marks",
+    )
     p.set_defaults(func=run)
 
 
@@ -50,8 +62,15 @@ def run(args: argparse.Namespace) -> int:
         printed = PrintedTarget(_spec_from_file(args.spec))
     else:
         printed = printed_target(load_cell(args.cell or "paper"))
-    drawing, spec_path = save_target_drawing(printed, args.out)
-    x0, x1, y0, y1 = printed.card_bounds_mm()
-    print(f"{drawing}: {x1 - x0:.1f} x {y1 - y0:.1f} mm card, print at 100 %; spec in {spec_path}")
+    if args.spec is not None:
+        check_outputs_apart([args.spec], [args.out, args.out.with_suffix(".json")])
+    drawing, spec_path = save_target_drawing(printed, args.out, page=args.page)
+    x0, x1, y0, y1 = drawing_bounds_mm(printed)
+    page = smallest_page(printed)
+    fits = f"fits one {page} page" if page else "larger than A3: print with --page A4 (tiles)"
+    print(
+        f"{drawing}: {x1 - x0:.1f} x {y1 - y0:.1f} mm ({fits}); print at 100 % and check the "
+        f"scale bar with a ruler; spec in {spec_path}"
+    )
     sys.stdout.flush()
     return 0
