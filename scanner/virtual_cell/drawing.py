@@ -155,6 +155,8 @@ PAGES_MM = {"A4": (210.0, 297.0), "A3": (297.0, 420.0), "Letter": (215.9, 279.4)
 PAGE_MARGIN_MM = 10.0
 #: Overlap of neighbouring tiles, where the alignment marks are.
 TILE_OVERLAP_MM = 20.0
+#: Largest PNG drawn (600 dpi): an A3 sheet is about 7e7 pixels.
+MAX_PNG_PIXELS = 2.0e8
 #: Height of the strip under the card: caption and scale bar.
 STRIP_MM = 16.0
 
@@ -264,6 +266,12 @@ def _tiles(lo: float, hi: float, span: float) -> list[float]:
 def _save_matplotlib(printed: PrintedTarget, out: Path, caption: str, page: str | None) -> None:
     x0, x1, y0, y1 = drawing_bounds_mm(printed)
     if page is None:
+        dpi = 600 if out.suffix.lower() == ".png" else None
+        if dpi is not None and (x1 - x0) * (y1 - y0) * (dpi / 25.4) ** 2 > MAX_PNG_PIXELS:
+            raise ValueError(
+                f"{out}: a {x1 - x0:.0f} x {y1 - y0:.0f} mm drawing at {dpi} dpi is over "
+                f"{MAX_PNG_PIXELS:.0e} pixels; draw it as .svg or .pdf"
+            )
         fig = plt.figure(figsize=((x1 - x0) / 25.4, (y1 - y0) / 25.4))
         ax = fig.add_axes((0, 0, 1, 1))
         ax.set_xlim(x0, x1)

@@ -54,3 +54,16 @@ def test_a_target_drawn_from_a_session_cannot_overwrite_it(tmp_path: Path, capsy
     spec.write_text('{"target": {"kind": "chessboard", "inner_corners": [9, 6], "square_mm": 20}}')
     assert main(["target", "--spec", str(spec), "--out", str(tmp_path / "session.svg")]) == 2
     assert "would overwrite the input" in capsys.readouterr().err
+
+
+def test_a_huge_png_is_refused_before_drawing(tmp_path: Path, capsys):
+    spec = tmp_path / "spec.json"
+    spec.write_text('{"kind": "chessboard", "inner_corners": [9, 6], "square_mm": 10000}')
+    assert main(["target", "--spec", str(spec), "--out", str(tmp_path / "big.png")]) == 2
+    assert "draw it as .svg or .pdf" in capsys.readouterr().err
+    assert not (tmp_path / "big.png").exists()
+
+
+def test_a_negative_seed_is_refused(tmp_path: Path, capsys):
+    assert main(["simulate", "--seed", "-1", "--out", str(tmp_path / "s")]) == 2
+    assert "--seed: expected >= 0, got -1" in capsys.readouterr().err
