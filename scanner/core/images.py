@@ -18,6 +18,7 @@ from scanner.core.fileio import InputError
 
 __all__ = [
     "CLIPPED_COLOUR_PIXELS_PER_SIDE",
+    "check_gray_image",
     "image_size",
     "laser_gray",
     "load_gray_image",
@@ -180,3 +181,35 @@ def to_gray_float(image: NDArray) -> NDArray:
     if not np.all(np.isfinite(out)):
         raise ValueError("image: expected finite values, got NaN or inf")
     return out
+
+
+def check_gray_image(image: NDArray, name: str) -> NDArray:
+    """A 2-D grey frame, checked, as a C-contiguous array (float64 converted to float32).
+
+    Parameters
+    ----------
+    image : ndarray, shape (H, W)
+        uint8, uint16, float32 or float64, at least 8x8 pixels.
+    name : str
+        What the image is, to name it in the error (``"image"``, ``"background"``).
+
+    Returns
+    -------
+    ndarray, shape (H, W)
+        The image itself when it is already C-contiguous and not float64.
+
+    Raises
+    ------
+    ValueError
+        Not 2-D, of another dtype, or smaller than 8x8 pixels.
+    """
+    img = np.asarray(image)
+    if img.ndim != 2:
+        raise ValueError(f"{name}: expected a 2-D grey image (H, W), got shape {img.shape}")
+    if img.dtype not in (np.uint8, np.uint16, np.float32, np.float64):
+        raise ValueError(f"{name}: expected uint8, uint16 or float image, got {img.dtype}")
+    if img.shape[0] < 8 or img.shape[1] < 8:
+        raise ValueError(f"{name}: expected at least 8x8 pixels, got {img.shape[1]}x{img.shape[0]}")
+    if img.dtype == np.float64:
+        img = img.astype(np.float32)
+    return np.ascontiguousarray(img)

@@ -299,7 +299,7 @@ def test_precise_mode_corrects_the_smoothing_bias_of_curved_stripes(curvature):
 
 
 def test_batched_window_measurement_matches_the_general_one():
-    from scanner.stripe.extract import _measure, _measure_many
+    from scanner.stripe.fast import _measure, _measure_many
 
     # Ordinary peaks, peaks at both borders, saturated ones and two maxima in one window.
     segs = [
@@ -381,7 +381,7 @@ def test_odd_sizes_read_only_and_float_frames_give_the_same_profile():
 
 
 def test_median_of_eight_bit_values_is_the_lower_middle_one():
-    from scanner.stripe.extract import _median
+    from scanner.stripe.estimates import _median
 
     rng = np.random.default_rng(15)
     big = rng.integers(0, 12, size=(40, 1023), dtype=np.uint8)  # the histogram path
@@ -392,7 +392,9 @@ def test_median_of_eight_bit_values_is_the_lower_middle_one():
 
 @pytest.mark.parametrize(("sigma", "last_line"), [(1.0, 240), (1.6, 224), (2.5, 240)])
 def test_auto_half_window_is_the_median_width_as_numpy_takes_it(sigma, last_line):
-    from scanner.stripe.extract import _FWHM_PER_SIGMA, _measure_many, auto_half_window
+    from scanner.stripe.estimates import auto_half_window
+    from scanner.stripe.fast import _measure_many
+    from scanner.stripe.profile import _FWHM_PER_SIGMA
 
     # 15 or 14 sampled lines on the stripe: an odd and an even count of widths.
     seg = StripeSegment((0, last_line), (140.3, 0.21), amplitude=170.0, sigma_px=sigma)

@@ -1,0 +1,195 @@
+"""Concentric-circles detector, naming the points: local crossings and the orientation marker.
+
+Step 6 of :mod:`calibration.detection.concentric`: which diameter end is A, decided by the
+orientation disc (:func:`_label_by_marker`); and the crossings of rings with the diameter
+lines, refined by local quadratic fits where lens distortion bends the curves
+(:func:`_local_crossing`).
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from calibration.detection.concentric_rays import _sample
+from calibration.detection.concentric_rings import _unit_line
+from scanner.core.targets import ConcentricCirclesTarget
+
+
+def _axis_dir(ln: NDArray, sign: float) -> NDArray:
+    return sign * np.array([-ln[1], ln[0]]) / np.linalg.norm(ln[:2])
+
+
+def _locally_biased(resid: NDArray, pts: NDArray, near: NDArray, reach: float) -> bool:
+    """Whether a global fit's residuals near ``near`` are significantly off zero (the curve is
+    bent there, e.g. by lens distortion), so a local fit is worth its extra noise."""
+    sel = np.linalg.norm(pts - near, axis=1) < reach
+    if sel.sum() < 6:
+        return False
+    r = resid[sel]
+    sem = float(np.std(r)) / np.sqrt(sel.sum())
+    # Neighbouring edge points are correlated (blur): a generous threshold.
+    return abs(float(np.mean(r))) > max(5.0 * sem, 0.03)
+
+
+def _local_quadratic(
+    pts: NDArray, line: NDArray, near: NDArray, reach: float, two_sided: bool = True
+):
+    """Fit ``across = c0 + c1 along + c2 along^2`` to the points within ``reach`` of ``near``
+    in the frame of ``line``; returns (origin, along dir, across dir, coefficients) or None."""
+    ln = _unit_line(line)
+    n = ln[:2]
+    e = np.array([-n[1], n[0]])
+    sel = np.linalg.norm(pts - near, axis=1) < reach
+    if sel.sum() < 6:
+        return None
+    d = pts[sel] - near
+    a, b = d @ e, d @ n
+    if np.ptp(a) < 0.5 * reach:
+        return None
+    if two_sided and (a.min() > -0.2 * reach or a.max() < 0.2 * reach):
+        return None  # a ring needs points on both sides of the crossing
+    A = np.column_stack([np.ones_like(a), a, a * a])
+    coef, *_ = np.linalg.lstsq(A, b, rcond=None)
+    return near, e, n, coef
+
+
+def _local_crossing(
+    pts1: NDArray, line1: NDArray, pts2: NDArray, line2: NDArray, near: NDArray, reach: float
+) -> NDArray | None:
+    """Crossing of two measured curves near ``near`` from local quadratic fits."""
+    f1 = _local_quadratic(pts1, line1, near, reach)
+    f2 = _local_quadratic(pts2, line2, near, reach, two_sided=False)
+    if f1 is None or f2 is None:
+        return None
+    o1, e1, n1, c1 = f1
+    o2, e2, n2, c2 = f2
+
+    def point1(a: float) -> NDArray:
+        return o1 + a * e1 + (c1[0] + c1[1] * a + c1[2] * a * a) * n1
+
+    def gap(a: float) -> float:
+        p = point1(a)
+        s2 = float((p - o2) @ e2)
+        return float((p - o2) @ n2) - (c2[0] + c2[1] * s2 + c2[2] * s2 * s2)
+
+    # Newton on the position along curve 1 (any crossing angle, unlike alternating projections).
+    a = float((near - o1) @ e1)
+    for _ in range(30):
+        f = gap(a)
+        df = (gap(a + 1e-3) - f) / 1e-3
+        if abs(df) < 1e-9:
+            return None
+        step = f / df
+        a -= step
+        if abs(step) < 1e-7:
+            break
+    if abs(gap(a)) > 1e-4:
+        return None
+    return point1(a)
+
+
+def _combine_centre(
+    o_lines: NDArray, o_pencil: NDArray, conics: dict[int, NDArray], axis_lines: list[NDArray]
+) -> NDArray:
+    """The image of O: the pencil's centre and the lines' crossing are both exact without
+    lens distortion; their mean halves the noise of either."""
+    return 0.5 * (o_lines + o_pencil)
+
+
+def _label_by_marker(
+    img: NDArray,
+    bg: NDArray,
+    target: ConcentricCirclesTarget,
+    center: NDArray,
+    ends: list[NDArray],
+    conics: dict[int, NDArray],
+    radii: NDArray,
+    axis_lines: list[NDArray],
+) -> tuple[int, float, float, NDArray] | str:
+    """Decide which end is A by the orientation disc; C follows (z out of the face).
+
+    Returns (index of the x line in ``axis_lines``, sign of +x along the x line's direction,
+    same for y, marker px) or a reason string.
+    """
+    h, w = img.shape
+    r_big = radii[max(conics)]
+    # Four ends around O in image order; candidate labellings are cyclic rotations.
+    e = [ends[0][0], ends[1][0], ends[0][1], ends[1][1]]
+    angs = [np.arctan2(p[1] - center[1], p[0] - center[0]) for p in e]
+    order = np.argsort(angs)  # increasing image angle (clockwise on screen, v down)
+    e = [e[i] for i in order]
+    # Target x -> y is counter-clockwise on screen when looking at the face, i.e. decreasing
+    # image angle: if A = e[i], then C = e[i - 1].
+    m = target.orientation_marker
+    mr = m.diameter_mm / 2
+    scores = []
+    candidates = []
+    for i in range(4):
+        a, b, cc, dd = e[i], e[(i + 2) % 4], e[(i - 1) % 4], e[(i + 1) % 4]
+        src = np.array([[0, 0], [r_big, 0], [-r_big, 0], [0, r_big], [0, -r_big]], np.float64)
+        dst = np.array([center, a, b, cc, dd], np.float64)
+        H, _ = cv2.findHomography(src, dst, 0)
+        if H is None:
+            scores.append(np.nan)
+            candidates.append(None)
+            continue
+        mc = _apply_h(H, np.array([m.center_mm]))[0]
+        ring_pts = np.array(
+            [
+                [m.center_mm[0] + 0.5 * mr * np.cos(t), m.center_mm[1] + 0.5 * mr * np.sin(t)]
+                for t in np.linspace(0, 2 * np.pi, 8, endpoint=False)
+            ]
+            + [list(m.center_mm)]
+        )
+        inner = _apply_h(H, ring_pts)
+        outer_pts = np.array(
+            [
+                [m.center_mm[0] + 1.6 * mr * np.cos(t), m.center_mm[1] + 1.6 * mr * np.sin(t)]
+                for t in np.linspace(0, 2 * np.pi, 12, endpoint=False)
+            ]
+        )
+        outer = _apply_h(H, outer_pts)
+        allp = np.vstack([inner, outer])
+        if not (
+            np.all(allp[:, 0] >= 0)
+            and np.all(allp[:, 0] <= w - 1)
+            and np.all(allp[:, 1] >= 0)
+            and np.all(allp[:, 1] <= h - 1)
+        ):
+            scores.append(np.nan)
+            candidates.append((a, cc, mc))
+            continue
+        vin = _sample(img, inner[:, 0], inner[:, 1])
+        bgv = _sample(bg, inner[:, 0], inner[:, 1])
+        vout = _sample(img, outer[:, 0], outer[:, 1])
+        ref = max(float(np.median(vout)), float(np.median(bgv)) * 0.5, 1e-6)
+        # Every point inside the disc must be dark (the brightest decides), around it paper.
+        scores.append(1.0 - float(np.max(vin)) / ref)
+        candidates.append((a, cc, mc))
+    sc = np.asarray(scores, dtype=np.float64)
+    if np.all(np.isnan(sc)):
+        return "orientation marker not visible (outside the image for every labelling)"
+    best = int(np.nanargmax(sc))
+    others = np.delete(sc, best)
+    if sc[best] < 0.3:
+        return f"orientation marker not visible (darkest candidate contrast {sc[best]:.2f})"
+    if np.any(np.isnan(others)) and sc[best] < 0.5:
+        return (
+            "orientation marker ambiguous: a weak candidate while another candidate position "
+            "lies outside the image"
+        )
+    if np.any(np.isfinite(others)) and np.nanmax(others) > 0.3 * sc[best]:
+        return "orientation marker ambiguous: more than one dark disc where the marker may be"
+    a, cc, mc = candidates[best]
+    ix = 0 if min(np.linalg.norm(ends[0] - a, axis=1)) < 1e-6 else 1
+    l_x, l_y = _unit_line(axis_lines[ix]), _unit_line(axis_lines[1 - ix])
+    sx = 1.0 if float((a - center) @ _axis_dir(l_x, 1.0)) > 0 else -1.0
+    sy = 1.0 if float((cc - center) @ _axis_dir(l_y, 1.0)) > 0 else -1.0
+    return ix, sx, sy, mc
+
+
+def _apply_h(H: NDArray, pts: NDArray) -> NDArray:
+    x = np.column_stack([pts, np.ones(len(pts))]) @ H.T
+    return x[:, :2] / x[:, 2:3]

@@ -1,0 +1,169 @@
+"""Concentric-circles detector, coarse stage: darkness, diameter lines, rings along rays.
+
+Steps 1-3 of :mod:`calibration.detection.concentric`: the darkness map ``D = 1 - I /
+background`` (a grey closing), the long thin dark lines (Hough) as candidate diameters whose
+crossings are candidate images of O, and rays from a candidate centre whose first crossings
+are labelled by the 1-D projectivity ``t = a r / (1 + b r)`` of the known radii.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+
+from calibration.detection.conics import intersect_lines
+
+# --------------------------------------------------------------------------------------------
+# Image preparation
+
+
+def _darkness(img: NDArray, kernel_px: int) -> tuple[NDArray, NDArray]:
+    """Darkness ``1 - I / background`` (>= 0) and the background, closing with ``kernel_px``."""
+    k = int(kernel_px) | 1
+    se = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+    img32 = img.astype(np.float32)
+    bg = cv2.morphologyEx(img32, cv2.MORPH_CLOSE, se)
+    bg = np.maximum(bg, img32)
+    # Unlit or dark surroundings are not target paper: no printed line can be seen there.
+    lit = float(np.percentile(bg, 75))
+    d = 1.0 - img32 / np.maximum(bg, 1e-6)
+    d[bg < 0.3 * lit] = 0.0
+    return np.clip(d, 0.0, 1.0).astype(np.float64), bg.astype(np.float64)
+
+
+def _bright_mask(img: NDArray, kernel_px: int) -> NDArray:
+    """1 where the image is clearly brighter than the paper around it (laser stripe, glare).
+
+    The paper level is a median over a window wider than thin lines, bright or dark.
+    """
+    k = max(int(kernel_px) * 2 + 1, 15) | 1
+    scale = 255.0 / max(float(img.max()), 1e-6)
+    u8 = np.clip(img * scale, 0, 255).astype(np.uint8)
+    paper = cv2.medianBlur(u8, min(k, 255)).astype(np.float64) / scale
+    bright = img > paper * 1.12 + 0.02 * float(np.median(paper))
+    bright = cv2.dilate(bright.astype(np.uint8), np.ones((3, 3), np.uint8))
+    return bright.astype(np.float64)
+
+
+def _noise_threshold(d: NDArray) -> float:
+    med = float(np.median(d))
+    mad = float(np.median(np.abs(d - med))) * 1.4826
+    return max(0.06, med + 6.0 * mad)
+
+
+# --------------------------------------------------------------------------------------------
+# Candidate centres
+
+
+def _hough_lines(mask: NDArray, min_votes: int, max_lines: int = 8) -> list[tuple[float, float]]:
+    lines = cv2.HoughLines(mask, 1.0, np.pi / 720, max(min_votes, 10))
+    if lines is None:
+        return []
+    h, w = mask.shape
+    mid = np.array([w / 2, h / 2, 1.0])
+    out: list[tuple[float, float]] = []
+    for rho, theta in lines[:, 0, :]:
+        dup = False
+        l1 = _line_from_hough(rho, theta)
+        for r2, t2 in out:
+            dth = abs((theta - t2 + np.pi / 2) % np.pi - np.pi / 2)
+            if dth > np.radians(4):
+                continue
+            l2 = _line_from_hough(r2, t2)
+            x = intersect_lines(l1, l2)
+            crossing_inside = abs(x[2]) > 1e-12 and (
+                -w / 2 <= x[0] / x[2] <= 1.5 * w and -h / 2 <= x[1] / x[2] <= 1.5 * h
+            )
+            if crossing_inside or abs(float(l1 @ mid) - float(l2 @ mid)) < 15:
+                dup = True
+                break
+        if not dup:
+            out.append((float(rho), float(theta)))
+        if len(out) >= max_lines:
+            break
+    return out
+
+
+def _line_from_hough(rho: float, theta: float) -> NDArray:
+    return np.array([np.cos(theta), np.sin(theta), -rho])
+
+
+def _sample(img: NDArray, u: NDArray, v: NDArray, order: int = 1) -> NDArray:
+    return ndimage.map_coordinates(img, [v, u], order=order, mode="constant", cval=0.0)
+
+
+def _ray_peaks(profile: NDArray, thr: float) -> list[int]:
+    """Indices of the maxima of the runs above ``thr`` of a 1-D profile."""
+    above = profile > thr
+    if not above.any():
+        return []
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], above.astype(np.int8), [0]])))
+    starts, ends = edges[::2], edges[1::2]
+    # A run touching the start is the centre's own crossing of the diameter lines.
+    return [int(s + np.argmax(profile[s:e])) for s, e in zip(starts, ends) if s > 0]
+
+
+def _projective_fit(r: NDArray, t: NDArray) -> tuple[float, float, float]:
+    """Fit ``t = a r / (1 + b r)``; returns a, b and the largest residual in pixels."""
+    A = np.column_stack([r, -r * t])
+    sol, *_ = np.linalg.lstsq(A, t, rcond=None)
+    a, b = float(sol[0]), float(sol[1])
+    denom = 1 + b * r
+    if np.any(denom <= 0.05) or a <= 0:
+        return a, b, np.inf
+    return a, b, float(np.max(np.abs(a * r / denom - t)))
+
+
+def _rays_from(
+    d: NDArray, c: NDArray, angles: NDArray, step: float = 1.0
+) -> tuple[NDArray, NDArray, NDArray]:
+    """Darkness profiles along rays from ``c``: (profiles (R, S), t (S,), valid (R, S))."""
+    h, w = d.shape
+    tmax = float(np.hypot(w, h))
+    t = np.arange(1.0, tmax, step)
+    du, dv = np.cos(angles), np.sin(angles)
+    u = c[0] + du[:, None] * t[None, :]
+    v = c[1] + dv[:, None] * t[None, :]
+    valid = (u >= 1) & (u <= w - 2) & (v >= 1) & (v <= h - 2)
+    prof = _sample(d, u.ravel(), v.ravel()).reshape(u.shape)
+    prof[~valid] = 0.0
+    return prof, t, valid
+
+
+def _label_rays(
+    d: NDArray,
+    c: NDArray,
+    radii: NDArray,
+    thr: float,
+    axis_angles: list[float],
+    n_rays: int = 96,
+) -> tuple[list[list[tuple[float, NDArray]]], int]:
+    """Ring crossings labelled by the 1-D projectivity along rays from ``c``.
+
+    Returns per ring a list of (angle, point px) and the number of consistent rays.
+    """
+    angles = np.linspace(0, 2 * np.pi, n_rays, endpoint=False) + 0.013
+    keep = np.ones(n_rays, bool)
+    for a in axis_angles:
+        diff = np.abs((angles - a + np.pi) % (2 * np.pi) - np.pi)
+        keep &= diff > np.radians(6)
+    angles = angles[keep]
+    prof, t, _ = _rays_from(d, c, angles)
+    per_ring: list[list[tuple[float, NDArray]]] = [[] for _ in radii]
+    good = 0
+    for i, ang in enumerate(angles):
+        peaks = _ray_peaks(prof[i], thr)
+        m = min(len(peaks), len(radii))
+        if m < 3:
+            continue
+        tp = t[np.asarray(peaks[:m])]
+        _, _, err = _projective_fit(radii[:m], tp)
+        if err > 1.5 + 0.01 * tp[-1]:
+            continue
+        good += 1
+        dirv = np.array([np.cos(ang), np.sin(ang)])
+        for k in range(m):
+            per_ring[k].append((float(ang), c + tp[k] * dirv))
+    return per_ring, good

@@ -1,0 +1,318 @@
+"""Concentric-circles detector, sub-pixel stage: the ring conics, their pencil, the diameters.
+
+Steps 4-5 of :mod:`calibration.detection.concentric`: the image of O from the pencil of ring
+conics (:func:`_pencil_centre`); then, for every ring, profiles along the conic's normals
+whose printed line's centre is the fixed point of a symmetric-window centroid
+(:func:`_locate_centres`), the conic refitted with outlier rejection (:func:`_refine_ring`);
+the diameter lines located the same way between the rings (:func:`_refine_axes`).
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+
+from calibration.detection.conics import fit_conic, fit_line, pencil_center, sampson_distances
+
+__all__ = ["ConcentricDetectorSettings"]
+
+
+@dataclass(frozen=True)
+class ConcentricDetectorSettings:
+    """Tuning of :func:`detect_concentric` (defaults suit 0.3 to 20 Mpx images)."""
+
+    max_tilt_deg: float = 65.0
+    """Views more oblique than this (ring images flatter than cos of it) are refused."""
+    min_rings: int = 3
+    """Fewest rings with a fitted conic for a detection."""
+    ray_step_px: float = 0.125
+    """Sampling step of the sub-pixel profiles."""
+    max_conic_rms_px: float = 0.6
+    """Rings whose refitted conic leaves a larger RMS are dropped."""
+    min_arc_fraction: float = 0.25
+    """A ring needs edge points over at least this fraction of its directions."""
+
+
+def _locate_centres(
+    coef: NDArray,
+    points: NDArray,
+    normals: NDArray,
+    half_window: float,
+    search: float,
+    step: float,
+    bright: NDArray | None = None,
+) -> tuple[NDArray, NDArray, NDArray]:
+    """Sub-pixel centre of a dark line near each of ``points`` along its ``normals``.
+
+    ``coef`` is the cubic-spline prefiltered darkness image. Returns (offset along the normal,
+    peak contrast above the local baseline, ok mask).
+    """
+    span = search + half_window + 1.0
+    tau = np.arange(-span, span + step / 2, step)
+    u = points[:, 0:1] + normals[:, 0:1] * tau[None, :]
+    v = points[:, 1:2] + normals[:, 1:2] * tau[None, :]
+    prof = ndimage.map_coordinates(coef, [v.ravel(), u.ravel()], order=3, prefilter=False)
+    prof = prof.reshape(u.shape)
+    inside = np.abs(tau) <= search
+    start = np.where(inside[None, :], prof, -np.inf).argmax(axis=1)
+    c = tau[start]
+    n = len(points)
+    rows = np.arange(n)
+    for _ in range(12):
+        lo, hi = c - half_window, c + half_window
+        base = 0.5 * (_interp_rows(tau, prof, lo, rows) + _interp_rows(tau, prof, hi, rows))
+        win = (tau[None, :] >= lo[:, None]) & (tau[None, :] <= hi[:, None])
+        wgt = np.where(win, np.maximum(prof - base[:, None], 0.0), 0.0)
+        s = wgt.sum(axis=1)
+        c_new = np.where(s > 0, (wgt * tau[None, :]).sum(axis=1) / np.maximum(s, 1e-300), c)
+        c_new = np.clip(c_new, -search, search)
+        if np.max(np.abs(c_new - c)) < 1e-4:
+            c = c_new
+            break
+        c = c_new
+    peak = _interp_rows(tau, prof, c, rows)
+    base = 0.5 * (
+        _interp_rows(tau, prof, c - half_window, rows)
+        + _interp_rows(tau, prof, c + half_window, rows)
+    )
+    contrast = peak - base
+    ok = np.isfinite(c) & (np.abs(c) < search) & (contrast > 0)
+    if bright is not None:
+        # A profile touching something brighter than the paper (laser stripe, glare) is biased.
+        hit = ndimage.map_coordinates(bright, [v.ravel(), u.ravel()], order=0, mode="constant")
+        ok &= ~hit.reshape(u.shape).any(axis=1)
+    return c, contrast, ok
+
+
+def _interp_rows(tau: NDArray, prof: NDArray, x: NDArray, rows: NDArray) -> NDArray:
+    step = tau[1] - tau[0]
+    f = (x - tau[0]) / step
+    i0 = np.clip(np.floor(f).astype(int), 0, len(tau) - 2)
+    w1 = np.clip(f - i0, 0.0, 1.0)
+    return prof[rows, i0] * (1 - w1) + prof[rows, i0 + 1] * w1
+
+
+def _conic_point_on_ray(conic: NDArray, c: NDArray, dirs: NDArray) -> NDArray:
+    """Positive t where ``c + t dir`` meets the conic, per direction (NaN if none)."""
+    p0 = np.array([c[0], c[1], 1.0])
+    dh = np.column_stack([dirs, np.zeros(len(dirs))])
+    a = np.einsum("ij,jk,ik->i", dh, conic, dh)
+    b = 2 * dh @ (conic @ p0)
+    cc = float(p0 @ conic @ p0)
+    disc = b * b - 4 * a * cc
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sq = np.sqrt(disc)
+        t1 = (-b + sq) / (2 * a)
+        t2 = (-b - sq) / (2 * a)
+    t = np.where(t1 > 0, t1, t2)
+    t = np.where((disc >= 0) & (t > 0), t, np.nan)
+    return t
+
+
+def _conic_normals(conic: NDArray, pts: NDArray) -> NDArray:
+    x = np.column_stack([pts, np.ones(len(pts))])
+    g = (x @ conic)[:, :2]
+    return g / np.linalg.norm(g, axis=1, keepdims=True)
+
+
+def _conic_axes_ratio(conic: NDArray) -> float:
+    """minor/major axis ratio of an ellipse conic (0 if not an ellipse)."""
+    a = conic[:2, :2]
+    w = np.linalg.eigvalsh(a)
+    if w[0] * w[1] <= 0:
+        return 0.0
+    w = np.abs(w)
+    return float(np.sqrt(min(w) / max(w)))
+
+
+def _ellipse_ok(conic: NDArray, c: NDArray) -> bool:
+    a = conic[:2, :2]
+    if np.linalg.det(a) <= 0:
+        return False
+    x = np.array([c[0], c[1], 1.0])
+    # The centre must be inside: sign of x^T C x opposite to the sign of the quadratic part.
+    return float(x @ conic @ x) * float(np.trace(a)) < 0
+
+
+def _unit_line(ln: NDArray) -> NDArray:
+    return ln / np.linalg.norm(ln[:2])
+
+
+def _perimeter_px(conic: NDArray, c: NDArray) -> float:
+    angles = np.linspace(0, 2 * np.pi, 64, endpoint=False)
+    dirs = np.column_stack([np.cos(angles), np.sin(angles)])
+    t = _conic_point_on_ray(conic, c, dirs)
+    t = np.where(np.isfinite(t), t, np.nanmedian(t))
+    return float(np.sum(t) * 2 * np.pi / 64)
+
+
+def _min_spacing_px(conics: dict[int, NDArray], c: NDArray) -> float:
+    angles = np.linspace(0, 2 * np.pi, 32, endpoint=False)
+    dirs = np.column_stack([np.cos(angles), np.sin(angles)])
+    ts = {k: _conic_point_on_ray(cn, c, dirs) for k, cn in conics.items()}
+    keys = sorted(ts)
+    gaps = [np.nanmin((ts[b] - ts[a]) / (b - a)) for a, b in itertools.pairwise(keys)]
+    gaps.append(float(np.nanmin(ts[keys[0]])) / (keys[0] + 1))
+    return float(max(np.nanmin(gaps), 3.0))
+
+
+def _pencil_centre(conics: dict[int, NDArray], radii: NDArray, c0: NDArray) -> NDArray | None:
+    """Image of O from the pencil of ring conics; None if the radius ratios disagree."""
+    keys = sorted(conics)
+    centres, bad = [], 0
+    for a in range(len(keys)):
+        for b in range(a + 1, len(keys)):
+            i, j = keys[a], keys[b]
+            try:
+                ctr, ratio = pencil_center(conics[i], conics[j])
+            except np.linalg.LinAlgError:
+                bad += 1
+                continue
+            expect = (radii[j] / radii[i]) ** 2
+            if not np.isfinite(ratio) or abs(ratio / expect - 1) > 0.05 + 0.02 * expect:
+                bad += 1
+                continue
+            centres.append(ctr[:2])
+    if not centres or bad > len(centres):
+        return None
+    centres_a = np.asarray(centres)
+    med = np.median(centres_a, axis=0)
+    if np.linalg.norm(med - c0) > 50 + 0.1 * np.linalg.norm(c0):
+        return None
+    return med
+
+
+def _refine_ring(
+    coef: NDArray,
+    conic: NDArray,
+    c: NDArray,
+    dirs: NDArray,
+    angles: NDArray,
+    axis_lines: list[NDArray],
+    half_window: float,
+    spacing_px: float,
+    s: ConcentricDetectorSettings,
+    size: tuple[int, int],
+    bright: NDArray | None = None,
+) -> tuple[NDArray, NDArray, NDArray] | None:
+    """Sub-pixel centre-line points of one ring and its refitted conic."""
+    w, h = size
+    t = _conic_point_on_ray(conic, c, dirs)
+    ok = np.isfinite(t)
+    pts = c + t[ok, None] * dirs[ok]
+    # Away from the image border and from the diameter lines.
+    margin = half_window + 3
+    inside = (
+        (pts[:, 0] > margin)
+        & (pts[:, 0] < w - 1 - margin)
+        & (pts[:, 1] > margin)
+        & (pts[:, 1] < h - 1 - margin)
+    )
+    clear = np.ones(len(pts), bool)
+    for ln in axis_lines:
+        dist = np.abs(pts @ ln[:2] + ln[2])
+        clear &= dist > 1.5 * half_window + 2
+    pts = pts[inside & clear]
+    if len(pts) < 16:
+        return None
+    normals = _conic_normals(conic, pts)
+    search = max(1.0, min(0.3 * spacing_px, 3.0 * half_window))
+    off, contrast, good = _locate_centres(
+        coef, pts, normals, half_window, search, s.ray_step_px, bright
+    )
+    med = np.median(contrast[good]) if good.any() else 0.0
+    good &= contrast > 0.5 * med
+    found = pts + off[:, None] * normals
+    found = found[good]
+    if len(found) < max(16, s.min_arc_fraction * len(dirs) * 0.5):
+        return None
+    conic_new = fit_conic(found)
+    for _ in range(3):
+        dist = sampson_distances(conic_new, found)
+        sig = 1.4826 * np.median(np.abs(dist)) + 1e-3
+        keep = np.abs(dist) < max(4 * sig, 0.05)
+        if keep.all():
+            break
+        found = found[keep]
+        if len(found) < 16:
+            return None
+        conic_new = fit_conic(found)
+    rms = float(np.sqrt(np.mean(sampson_distances(conic_new, found) ** 2)))
+    if rms > s.max_conic_rms_px or not _ellipse_ok(conic_new, c):
+        return None
+    return found, conic_new, np.array([rms])
+
+
+def _refine_axes(
+    coef: NDArray,
+    axis_lines: list[NDArray],
+    c: NDArray,
+    conics: dict[int, NDArray],
+    radii: NDArray,
+    half_window: float,
+    size: tuple[int, int],
+    bright: NDArray | None = None,
+) -> tuple[list[NDArray], list[NDArray]] | None:
+    """Sub-pixel points on both diameter lines, between the rings; refitted lines."""
+    w, h = size
+    keys = sorted(conics)
+    new_lines, new_pts = [], []
+    for ln in axis_lines:
+        ln = _unit_line(ln)
+        # Re-anchor the line through the current centre (keeps its direction).
+        ln = np.array([ln[0], ln[1], -(ln[0] * c[0] + ln[1] * c[1])])
+        dirv = np.array([-ln[1], ln[0]])
+        samples = []
+        for sgn in (1.0, -1.0):
+            ts = [0.0]
+            for k in keys:
+                t = _conic_point_on_ray(conics[k], c, (sgn * dirv)[None, :])[0]
+                ts.append(float(t) if np.isfinite(t) else np.nan)
+            ts_a = np.asarray(ts)
+            for a, b in itertools.pairwise(ts_a):
+                if not (np.isfinite(a) and np.isfinite(b)):
+                    continue
+                gap = b - a
+                clear = half_window + 1.5
+                if gap < 2 * clear + 2:
+                    continue
+                n = max(1, int((gap - 2 * clear) / 2))
+                for tt in np.linspace(a + clear, b - clear, n):
+                    samples.append(c + sgn * tt * dirv)
+        if len(samples) < 4:
+            return None
+        pts = np.asarray(samples)
+        inside = (
+            (pts[:, 0] > half_window + 3)
+            & (pts[:, 0] < w - half_window - 4)
+            & (pts[:, 1] > half_window + 3)
+            & (pts[:, 1] < h - half_window - 4)
+        )
+        pts = pts[inside]
+        if len(pts) < 4:
+            return None
+        normals = np.tile(ln[:2], (len(pts), 1))
+        off, contrast, good = _locate_centres(
+            coef, pts, normals, half_window, max(1.0, 2 * half_window), 0.125, bright
+        )
+        med = np.median(contrast[good]) if good.any() else 0.0
+        good &= contrast > 0.5 * med
+        found = (pts + off[:, None] * normals)[good]
+        if len(found) < 4:
+            return None
+        line = fit_line(found)
+        for _ in range(3):
+            dist = found @ line[:2] + line[2]
+            sig = 1.4826 * np.median(np.abs(dist)) + 1e-3
+            keep = np.abs(dist) < max(4 * sig, 0.05)
+            if keep.all() or keep.sum() < 4:
+                break
+            found = found[keep]
+            line = fit_line(found)
+        new_lines.append(line)
+        new_pts.append(found)
+    return new_lines, new_pts

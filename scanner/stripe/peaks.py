@@ -1,0 +1,216 @@
+"""Several peaks per scan line: candidates, de-duplication, segments and reflections.
+
+Every local maximum above a contrast threshold set by the image noise and by the line's
+brightest peak is kept. Peaks on neighbouring lines link into segments; a weaker segment that
+never appears without a brighter companion is taken for a reflection and dropped, and the
+survivors on those lines carry :attr:`StripeFlag.AMBIGUOUS`.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from scanner.stripe.estimates import _median
+from scanner.stripe.fast import _measure_many, _saturation_level
+from scanner.stripe.profile import StripeFlag, StripeOptions, _Peaks
+
+
+def _primary_and_secondary(
+    img: NDArray, options: StripeOptions, noise: float, hw: int
+) -> tuple[_Peaks, bool]:
+    """All peaks of the working-orientation image (rows are scan lines).
+
+    Returns the peaks and whether the lines may hold several peaks (``False``: at most one per
+    line, in line order).
+    """
+    H, W = img.shape
+    sat = _saturation_level(img, options)
+    min_contrast = options.min_contrast
+    if min_contrast is None:
+        min_contrast = 0.03 * (sat if np.isfinite(sat) else float(img.max()))
+    thr_contrast = max(options.k_noise * noise, float(min_contrast))
+
+    lines = np.arange(H)
+    cols = img.argmax(axis=1)
+    # Lines where something else clears the threshold outside the primary's window are searched
+    # for further peaks; the common frame (one stripe, dark background) skips this entirely.
+    if options.background_level is not None:
+        bg_level = float(options.background_level)
+    else:
+        bg_level = _median(img[:: max(1, H // 32), :: max(1, W // 32)])
+    thr = bg_level + thr_contrast
+    # Pixels above the level, the primary windows cleared: what remains is elsewhere on its line.
+    if img.dtype == np.uint8:
+        _, mask = cv2.threshold(img, min(thr, 254.0), 1, cv2.THRESH_BINARY)
+    elif img.dtype == np.float32:
+        mask = cv2.threshold(img, thr, 1, cv2.THRESH_BINARY)[1].astype(np.uint8)
+    else:
+        mask = (img > thr).astype(np.uint8)
+    prim = _measure_many(img, lines, cols, hw, sat, clear=mask)
+    extra = np.flatnonzero(cv2.reduce(mask, 1, cv2.REDUCE_MAX).reshape(-1))
+    parts = [prim]
+    if extra.size:
+        # The global level is only a first sieve: a further peak must clear its own line's
+        # background and the fraction of the line's brightest contrast.
+        line_bg = prim.peak[extra] - prim.contrast[extra]
+        line_thr = np.maximum(line_bg, bg_level) + np.maximum(
+            thr_contrast, options.min_relative_peak * np.maximum(prim.contrast[extra], 0.0)
+        )
+        above = img[extra] > line_thr[:, None]
+        win = cols[extra][:, None] + np.arange(-hw, hw + 1)
+        in_line_win = np.take_along_axis(above, np.clip(win, 0, W - 1), axis=1) & (
+            (win >= 0) & (win < W)
+        )
+        extra = extra[above.sum(axis=1) > in_line_win.sum(axis=1)]
+        if extra.size:
+            parts.append(_secondary_peaks(img, extra, cols[extra], hw, sat, thr))
+    if len(parts) == 1:
+        # One peak per line: the line's brightest is the peak itself, only the noise and
+        # absolute thresholds apply.
+        keep = prim.contrast >= thr_contrast
+        if np.all(keep):
+            return prim, False
+        return prim.take(np.flatnonzero(keep)), False
+    peaks = _Peaks.concat(parts)
+
+    # Contrast thresholds: noise, absolute, and relative to the line's brightest peak.
+    best = _line_max(peaks.line, peaks.contrast, H)
+    keep = (peaks.contrast >= thr_contrast) & (
+        peaks.contrast >= options.min_relative_peak * best[peaks.line]
+    )
+    peaks = peaks.take(np.flatnonzero(keep))
+    return _dedupe(peaks, hw), True
+
+
+def _line_max(line: NDArray, value: NDArray, n_lines: int) -> NDArray:
+    """Per-line maximum of ``value`` (0 where a line has none); fast when lines are unique."""
+    best = np.zeros(n_lines, np.float32)
+    if line.size and np.all(line[1:] > line[:-1]):
+        best[line] = value
+        return best
+    # Two sorted runs (primary peaks, then further peaks): a stable sort merges them cheaply.
+    order = np.argsort(line, kind="stable")
+    ls = line[order]
+    starts = np.flatnonzero(np.concatenate([[True], ls[1:] != ls[:-1]]))
+    best[ls[starts]] = np.maximum.reduceat(value[order], starts)
+    return best
+
+
+def _secondary_peaks(
+    img: NDArray,
+    lines: NDArray,
+    primary_cols: NDArray,
+    hw: int,
+    sat: float,
+    thr: float,
+) -> _Peaks:
+    """Local maxima above ``thr`` on ``lines``, away from the primary peak's window."""
+    sub = img[lines].astype(np.float32)
+    mx = ndimage.maximum_filter1d(sub, size=2 * hw + 1, axis=1, mode="nearest")
+    is_max = (sub >= mx) & (sub > thr)
+    # A plateau (saturation) gives a run of equal maxima: keep its first pixel only.
+    is_max[:, 1:] &= ~(is_max[:, :-1] & (sub[:, 1:] == sub[:, :-1]))
+    r, c = np.nonzero(is_max)
+    far = np.abs(c - primary_cols[r]) > hw
+    # Also drop pixels inside a saturated run that continues from the primary peak.
+    r, c = r[far], c[far]
+    if r.size == 0:
+        return _empty_peaks()
+    return _measure_many(img, lines[r], c, hw, sat)
+
+
+def _empty_peaks() -> _Peaks:
+    return _Peaks(
+        np.zeros(0, np.int64),
+        np.zeros(0),
+        np.zeros(0, np.float32),
+        np.zeros(0, np.float32),
+        np.zeros(0, np.float32),
+        np.zeros(0, np.uint8),
+        np.zeros(0, np.float32),
+    )
+
+
+def _dedupe(peaks: _Peaks, hw: int) -> _Peaks:
+    """Merge peaks of one line that landed within a window of each other (keep the brighter)."""
+    if peaks.line.size < 2:
+        return peaks
+    order = np.lexsort((peaks.pos, peaks.line))
+    p = peaks.take(order)
+    same = (p.line[1:] == p.line[:-1]) & (np.abs(p.pos[1:] - p.pos[:-1]) <= hw)
+    if not np.any(same):
+        return p
+    drop = np.zeros(p.line.size, bool)
+    idx = np.flatnonzero(same)
+    weaker_first = p.contrast[idx] < p.contrast[idx + 1]
+    drop[np.where(weaker_first, idx, idx + 1)] = True
+    keep_idx = np.flatnonzero(~drop)
+    out = p.take(keep_idx)
+    # The kept neighbour of a merged pair saw two maxima in its window.
+    merged_into = np.where(weaker_first, idx + 1, idx)
+    amb = np.zeros(p.line.size, bool)
+    amb[merged_into] = True
+    out.flags[amb[keep_idx]] |= np.uint8(StripeFlag.AMBIGUOUS)
+    return out
+
+
+def _segments(peaks: _Peaks, link_px: float) -> NDArray:
+    """Segment label per peak: chains of peaks on consecutive lines within ``link_px``."""
+    n = peaks.line.size
+    order = np.lexsort((peaks.pos, peaks.line))
+    line = peaks.line[order]
+    pos = peaks.pos[order]
+    # Nearest peak on the previous line, via a sorted key line * big + pos.
+    big = float(max(1e6, pos.max() + 10 * link_px + 1))
+    key = line * big + pos
+    target = (line - 1) * big + pos
+    j = np.searchsorted(key, target)
+    src, dst = [], []
+    for cand in (j - 1, j):
+        ok = (cand >= 0) & (cand < n)
+        cc = np.clip(cand, 0, n - 1)
+        ok &= (line[cc] == line - 1) & (np.abs(pos[cc] - pos) <= link_px)
+        src.append(np.flatnonzero(ok))
+        dst.append(cc[ok])
+    s = np.concatenate(src)
+    d = np.concatenate(dst)
+    graph = coo_matrix((np.ones(s.size), (s, d)), shape=(n, n))
+    _, labels_sorted = connected_components(graph, directed=False)
+    labels = np.empty(n, np.int64)
+    labels[order] = labels_sorted
+    return labels
+
+
+def _resolve_multi(peaks: _Peaks, options: StripeOptions) -> _Peaks:
+    """Drop reflections, flag ambiguity and secondary segments on lines with several peaks."""
+    n = peaks.line.size
+    if n < 2 or np.all(peaks.line[1:] > peaks.line[:-1]):  # one peak per line: nothing to do
+        return peaks
+    counts = np.bincount(peaks.line)
+    multi_line = counts[peaks.line] > 1
+    if not np.any(multi_line):
+        return peaks
+    labels = _segments(peaks, options.link_px)
+    best = _line_max(peaks.line, peaks.contrast, counts.size)
+    is_best = peaks.contrast >= best[peaks.line]
+    ratio = peaks.contrast / np.maximum(best[peaks.line], 1e-6)
+    # A segment is a reflection when none of its peaks is alone on its line and each stays
+    # below reflection_ratio of its line's brightest peak.
+    n_lab = int(labels.max()) + 1
+    alone = np.zeros(n_lab, bool)
+    alone[labels[~multi_line]] = True
+    strong = np.zeros(n_lab, bool)
+    strong[labels[ratio >= options.reflection_ratio]] = True
+    reflection = ~alone[labels] & ~strong[labels] & ~is_best
+    peaks.flags[multi_line & ~is_best] |= np.uint8(StripeFlag.SECONDARY)
+    amb_lines = np.unique(peaks.line[reflection])
+    amb = np.isin(peaks.line, amb_lines)
+    peaks.flags[amb] |= np.uint8(StripeFlag.AMBIGUOUS)
+    if options.keep_reflections:
+        return peaks
+    return peaks.take(np.flatnonzero(~reflection))
