@@ -5,6 +5,7 @@ Used by the demo, the benchmarks and the tests, so every place states accuracy t
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -73,9 +74,12 @@ def compare_calibrations(estimate: Calibration, truth: Calibration) -> Calibrati
     cam = CameraModel(estimate.width, estimate.height, K, estimate.dist)
     cam_t = CameraModel(truth.width, truth.height, Kt, truth.dist)
     model_max, model_rms = model_reprojection_error_px(cam, cam_t)
-    n, nt = estimate.light_plane.normal, truth.light_plane.normal
-    sign = 1.0 if float(n @ nt) >= 0 else -1.0
-    angle = float(np.degrees(np.arccos(np.clip(abs(float(n @ nt)), -1.0, 1.0))))
+    angle, d_error = math.nan, math.nan  # a camera-only calibration has no plane to compare
+    if estimate.light_plane is not None and truth.light_plane is not None:
+        n, nt = estimate.light_plane.normal, truth.light_plane.normal
+        sign = 1.0 if float(n @ nt) >= 0 else -1.0
+        angle = float(np.degrees(np.arccos(np.clip(abs(float(n @ nt)), -1.0, 1.0))))
+        d_error = float(sign * estimate.light_plane.d - truth.light_plane.d)
     return CalibrationErrors(
         fx_rel_pct=100.0 * (K[0, 0] - Kt[0, 0]) / Kt[0, 0],
         fy_rel_pct=100.0 * (K[1, 1] - Kt[1, 1]) / Kt[1, 1],
@@ -84,7 +88,7 @@ def compare_calibrations(estimate: Calibration, truth: Calibration) -> Calibrati
         model_max_px=model_max,
         model_rms_px=model_rms,
         plane_angle_deg=angle,
-        plane_d_mm=float(sign * estimate.light_plane.d - truth.light_plane.d),
+        plane_d_mm=d_error,
         hand_eye_rotation_deg=angle_between_rotations_deg(
             estimate.flange_from_cam, truth.flange_from_cam
         ),

@@ -57,6 +57,8 @@ __all__ = ["CalibrationResult", "calibrate_session", "stripe_pixel_at", "target_
 logger = logging.getLogger(__name__)
 
 METHODS = ("default", "paper")
+#: Rows with a robot pose and a target image that a hand-eye calibration needs at least.
+MIN_POSED_VIEWS = 3
 
 
 @dataclass(frozen=True)
@@ -85,7 +87,8 @@ class CalibrationResult:
         Stripe centres per frame id (laser images only).
     cam_from_target : dict of int to ndarray, shape (4, 4)
         Extrinsics per frame id.
-    light_plane : LightPlaneResult
+    light_plane : LightPlaneResult or None
+        ``None`` for a session without laser images (a camera-only calibration).
     hand_eye : HandEyeResult
     intrinsics : object
         The :class:`calibration.intrinsics.IntrinsicsResult`.
@@ -99,7 +102,7 @@ class CalibrationResult:
     observations: dict[int, TargetObservation]
     stripes: dict[int, NDArray]
     cam_from_target: dict[int, NDArray]
-    light_plane: LightPlaneResult
+    light_plane: LightPlaneResult | None
     hand_eye: HandEyeResult
     intrinsics: Any
     session: Session
@@ -282,6 +285,19 @@ def calibrate_session(
             f"method 'paper' needs the concentric-circles target; this session uses a {target.kind} "
             "(use --method default)"
         )
+    # What cannot give a file is refused here, before the detection's minutes of work.
+    camera_only = not any(f.laser_image is not None for f in session.frames)
+    posed_targets = sum(f.has_pose and f.target_image is not None for f in session.frames)
+    if posed_targets < MIN_POSED_VIEWS:
+        raise ValueError(
+            f"hand-eye: expected at least {MIN_POSED_VIEWS} rows with a robot pose and a target "
+            f"image, got {posed_targets}"
+        )
+    if method == "paper" and camera_only:
+        raise ValueError(
+            "method 'paper' needs laser images (its light plane and hand-eye follow the stripe); "
+            "this session has none (the default method gives a camera-only calibration)"
+        )
     stage = on_stage or (lambda name: logger.info("stage: %s", name))
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -361,35 +377,41 @@ def calibrate_session(
         stripes[f.id] = _extract(session, f)
     timings["stripes_s"] = time.perf_counter() - t1
 
-    # 5. light plane
-    stage("light plane")
-    t1 = time.perf_counter()
-    extent = target_extent_mm(target)
+    # 5. light plane (none from a session without laser images: a camera-only calibration)
+    plane_res: LightPlaneResult | None = None
     plane_paper = None
-    along_ink: set[int] = set()
-    if isinstance(target, ConcentricCirclesTarget):
-        pviews = _paper_plane_views(session.frames, observations, stripes)
-        plane_paper = paper_light_plane(pviews, camera, target.radius_mm)
-        # A stripe lying along a printed diameter line runs on ink its whole length, which
-        # biases its centre: those rows serve the paper's method, not the default fit.
-        along_ink = {v.frame_id for v in pviews}
-    laser_views = [
-        LaserView(f.id, stripes[f.id], cam_from_target[f.id], extent)
-        for f in with_laser
-        if f.id in cam_from_target and len(stripes[f.id]) and f.id not in along_ink
-    ]
-    plane_default = calibrate_light_plane(laser_views, camera)
-    skipped = [
-        {"frame_id": i, "reason": "stripe along a printed diameter line (paper light-plane row)"}
-        for i in sorted(along_ink)
-    ]
-    plane_res = plane_paper if method == "paper" else plane_default
-    if plane_res is None or not plane_res:
-        why = plane_res.reason if plane_res is not None else "no light-plane views"
-        raise ValueError(f"light plane ({method}): {why}")
-    for r in plane_res.rejected:
-        rejected.append(Rejection(int(r["frame_id"]), "light plane", r["reason"]))
-    timings["light_plane_s"] = time.perf_counter() - t1
+    skipped: list[dict[str, Any]] = []
+    if not camera_only:
+        stage("light plane")
+        t1 = time.perf_counter()
+        extent = target_extent_mm(target)
+        along_ink: set[int] = set()
+        if isinstance(target, ConcentricCirclesTarget):
+            pviews = _paper_plane_views(session.frames, observations, stripes)
+            plane_paper = paper_light_plane(pviews, camera, target.radius_mm)
+            # A stripe lying along a printed diameter line runs on ink its whole length, which
+            # biases its centre: those rows serve the paper's method, not the default fit.
+            along_ink = {v.frame_id for v in pviews}
+        laser_views = [
+            LaserView(f.id, stripes[f.id], cam_from_target[f.id], extent)
+            for f in with_laser
+            if f.id in cam_from_target and len(stripes[f.id]) and f.id not in along_ink
+        ]
+        plane_default = calibrate_light_plane(laser_views, camera)
+        skipped = [
+            {
+                "frame_id": i,
+                "reason": "stripe along a printed diameter line (paper light-plane row)",
+            }
+            for i in sorted(along_ink)
+        ]
+        plane_res = plane_paper if method == "paper" else plane_default
+        if plane_res is None or not plane_res:
+            why = plane_res.reason if plane_res is not None else "no light-plane views"
+            raise ValueError(f"light plane ({method}): {why}")
+        for r in plane_res.rejected:
+            rejected.append(Rejection(int(r["frame_id"]), "light plane", r["reason"]))
+        timings["light_plane_s"] = time.perf_counter() - t1
 
     # 6. hand-eye
     stage("hand-eye")
@@ -441,7 +463,7 @@ def calibrate_session(
             "per_view_rms_px": {str(k): v for k, v in per_view.items()},
         },
         "extrinsics": extrinsics_q,
-        "light_plane": plane_res.quality(),
+        "light_plane": None if plane_res is None else plane_res.quality(),
         "hand_eye": he.quality(),
         "rejected": [r.to_json() for r in rejected],
         "skipped": skipped if method == "default" else [],
@@ -459,7 +481,7 @@ def calibrate_session(
         height=session.height,
         K=camera.K,
         dist=camera.dist,
-        light_plane=plane_res.plane,  # type: ignore[arg-type]
+        light_plane=None if plane_res is None else plane_res.plane,
         flange_from_cam=he.flange_from_cam,  # type: ignore[arg-type]
         quality=quality,
     )
@@ -536,7 +558,7 @@ def _paper_hand_eye(
 
 
 def _verdict(
-    intr: Any, plane: LightPlaneResult, he: HandEyeResult, rejected: list[Rejection]
+    intr: Any, plane: LightPlaneResult | None, he: HandEyeResult, rejected: list[Rejection]
 ) -> tuple[str, list[int]]:
     """``"good"`` or ``"check these frames: ..."`` with the frames to look at."""
     check: set[int] = {r.frame_id for r in rejected}
@@ -544,7 +566,7 @@ def _verdict(
     if rms:
         med = float(np.median(rms))
         check |= {int(p["frame_id"]) for p in he.per_pose if p.get("rms_px", 0) > max(3 * med, 1.0)}
-    per = [p["rms_mm"] for p in plane.per_frame]
+    per = [p["rms_mm"] for p in plane.per_frame] if plane is not None else []
     if per:
         med = float(np.median(per))
         check |= {int(p["frame_id"]) for p in plane.per_frame if p["rms_mm"] > max(3 * med, 0.05)}

@@ -152,38 +152,48 @@ def write_calibration_report(
         ),
     )
     lpq = result.light_plane
-    body += rep.section(
-        "Light plane (camera frame, n·p + d = 0)",
-        rep.key_value_table(
-            {
-                "method": lpq.method,
-                "normal": " ".join(f"{v:.6f}" for v in cal.light_plane.normal),
-                "normal uncertainty (deg)": _fmt(lpq.std_normal_deg, None, 5),
-                "d (mm)": _fmt(cal.light_plane.d, lpq.std_d_mm, 4),
-                "residual RMS (mm)": _fmt(lpq.rms_mm, None, 4),
-                "points": lpq.n_points,
-                "frames used / rejected": f"{len(lpq.per_frame)} / {len(lpq.rejected)}",
-            }
+    if lpq is None:
+        body += rep.section(
+            "Light plane",
+            "<p>None: the session has no laser images, so this is a camera and hand-eye "
+            "calibration (<code>light_plane: null</code>). <code>scanner scan</code> and "
+            "<code>scanner check</code> need a light plane; every other reader uses the file.</p>",
         )
-        + (
-            rep.figure(fig, "Stripe points in the camera frame and their distances to the plane")
-            if (fig := _plane_figure(result)) is not None
-            else ""
-        )
-        + (
-            rep.figure(
-                _bar(
-                    [p["frame_id"] for p in lpq.per_frame],
-                    [p["rms_mm"] * 1000 for p in lpq.per_frame],
-                    "RMS (µm)",
-                    "light plane residual per frame",
-                ),
-                "Light-plane residual RMS per frame",
+    else:
+        body += rep.section(
+            "Light plane (camera frame, n·p + d = 0)",
+            rep.key_value_table(
+                {
+                    "method": lpq.method,
+                    "normal": " ".join(f"{v:.6f}" for v in cal.light_plane.normal),
+                    "normal uncertainty (deg)": _fmt(lpq.std_normal_deg, None, 5),
+                    "d (mm)": _fmt(cal.light_plane.d, lpq.std_d_mm, 4),
+                    "residual RMS (mm)": _fmt(lpq.rms_mm, None, 4),
+                    "points": lpq.n_points,
+                    "frames used / rejected": f"{len(lpq.per_frame)} / {len(lpq.rejected)}",
+                }
             )
-            if lpq.per_frame
-            else ""
-        ),
-    )
+            + (
+                rep.figure(
+                    fig, "Stripe points in the camera frame and their distances to the plane"
+                )
+                if (fig := _plane_figure(result)) is not None
+                else ""
+            )
+            + (
+                rep.figure(
+                    _bar(
+                        [p["frame_id"] for p in lpq.per_frame],
+                        [p["rms_mm"] * 1000 for p in lpq.per_frame],
+                        "RMS (µm)",
+                        "light plane residual per frame",
+                    ),
+                    "Light-plane residual RMS per frame",
+                )
+                if lpq.per_frame
+                else ""
+            ),
+        )
     he = result.hand_eye
     x = cal.flange_from_cam
     body += rep.section(

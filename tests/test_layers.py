@@ -32,7 +32,7 @@ LAYERS = (
     ("scanner.scanning",),
     ("scanner.virtual_cell",),
     ("metrology",),
-    ("scanner.app",),
+    ("scanner.app", "scanner.__main__"),
 )
 
 _MODULE_STRING = re.compile(r"^(scanner|calibration|metrology)(\.[A-Za-z_]\w*)+(:\w+)?$")

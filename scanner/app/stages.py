@@ -240,6 +240,7 @@ def check(
     outputs = [out] + ([report_path] if report_path is not None else [])
     check_outputs_apart([session_dir, calibration_path], outputs)
     calibration = read_calibration(calibration_path)
+    calibration.require_light_plane(calibration_path, "the EF check")
     session = read_session(session_dir)
     result = run_ef_check(
         session,
@@ -295,12 +296,17 @@ def scan(
         raise ValueError("sessions: expected at least one sweep session, got none")
     check_outputs_apart([*session_dirs, calibration_path], [out])
     calibration = read_calibration(calibration_path)
+    calibration.require_light_plane(calibration_path, "scanning")
+    options = options or ScanOptions()
+    if options.laser_origin_mm is None and calibration.laser_origin_cam is not None:
+        # The calibration's laser origin gives each point's illumination angle.
+        options = replace(options, laser_origin_mm=tuple(calibration.laser_origin_cam.tolist()))
     sessions = [read_session(s, check_images=True) for s in session_dirs]
     check_scan_inputs(sessions, calibration)
     result = scan_session(
         sessions,
         calibration,
-        options or ScanOptions(),
+        options,
         out_path=out,
         work_dir=work_dir,
         progress=progress,

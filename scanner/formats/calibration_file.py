@@ -5,6 +5,8 @@ The format is a public contract (``shared/spec/interfaces.md``, section 2)::
     {"format": "scan-calibration/1",
      "camera": {"width", "height", "K": 3x3, "dist": [k1, k2, p1, p2, k3]},
      "light_plane": {"normal": [nx, ny, nz], "d": d},     # camera frame, normal . p + d = 0
+                                                          # (null: camera-only calibration)
+     "laser_origin_cam": [x, y, z],                       # optional: apex of the laser fan
      "flange_from_cam": 4x4,
      "quality": {...free-form...}}
 
@@ -162,9 +164,12 @@ class Calibration:
     height: int
     K: NDArray
     dist: NDArray
-    light_plane: LightPlane
+    light_plane: LightPlane | None
+    """``None`` for a camera + hand-eye calibration from a session without laser images."""
     flange_from_cam: NDArray
     quality: CalibrationQuality = field(default_factory=CalibrationQuality)
+    laser_origin_cam: NDArray | None = None
+    """The apex of the laser fan, camera frame, mm (optional)."""
 
     def __post_init__(self) -> None:
         self.K = np.asarray(self.K, dtype=np.float64)
@@ -195,12 +200,33 @@ class Calibration:
                 f"flange_from_cam: expected the camera within {MAX_OFFSET_MM:g} mm of the flange, "
                 f"got {np.linalg.norm(self.flange_from_cam[:3, 3]):g} mm"
             )
+        if self.laser_origin_cam is not None:
+            origin = np.asarray(self.laser_origin_cam, dtype=np.float64).reshape(-1)
+            if origin.shape != (3,) or not np.all(np.abs(origin) <= MAX_OFFSET_MM):
+                raise ValueError(
+                    f"laser_origin_cam: expected [x, y, z] within {MAX_OFFSET_MM:g} mm of the "
+                    f"camera, got {self.laser_origin_cam!r}"
+                )
+            self.laser_origin_cam = origin
         if not (0 < self.width <= MAX_IMAGE_PX and 0 < self.height <= MAX_IMAGE_PX):
             raise ValueError(
                 f"camera: expected a positive image size, got {self.width}x{self.height}"
             )
 
+    def require_light_plane(self, source: str | os.PathLike[str], what: str) -> LightPlane:
+        """The light plane, or an :class:`InputError` naming ``source``: ``what`` needs one."""
+        if self.light_plane is None:
+            raise InputError(
+                source, f"a camera-only calibration (light_plane: null): {what} needs a light plane"
+            )
+        return self.light_plane
+
     def to_json(self) -> dict[str, Any]:
+        extra = (
+            {}
+            if self.laser_origin_cam is None
+            else {"laser_origin_cam": self.laser_origin_cam.tolist()}
+        )
         return {
             "format": FORMAT,
             "camera": {
@@ -209,11 +235,11 @@ class Calibration:
                 "K": self.K.tolist(),
                 "dist": self.dist.tolist(),
             },
-            "light_plane": {
-                "normal": self.light_plane.normal.tolist(),
-                "d": float(self.light_plane.d),
-            },
+            "light_plane": None
+            if self.light_plane is None
+            else {"normal": self.light_plane.normal.tolist(), "d": float(self.light_plane.d)},
             "flange_from_cam": self.flange_from_cam.tolist(),
+            **extra,
             "quality": self.quality.to_json(),
         }
 
@@ -237,15 +263,17 @@ def read_calibration(path: str | os.PathLike[str]) -> Calibration:
         raise InputError(p, f"format: expected {FORMAT!r}, got {obj.get('format')!r}")
     try:
         cam = obj["camera"]
-        plane = obj["light_plane"]
+        plane = obj.get("light_plane")
+        origin = obj.get("laser_origin_cam")
         return Calibration(
             width=int(cam["width"]),
             height=int(cam["height"]),
             K=np.asarray(cam["K"], dtype=np.float64),
             dist=np.asarray(cam["dist"], dtype=np.float64),
-            light_plane=LightPlane(
-                np.asarray(plane["normal"], dtype=np.float64), float(plane["d"])
-            ),
+            light_plane=None
+            if plane is None
+            else LightPlane(np.asarray(plane["normal"], dtype=np.float64), float(plane["d"])),
+            laser_origin_cam=None if origin is None else np.asarray(origin, dtype=np.float64),
             flange_from_cam=np.asarray(obj["flange_from_cam"], dtype=np.float64),
             quality=CalibrationQuality.from_json(obj.get("quality")),
         )

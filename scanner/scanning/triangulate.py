@@ -55,6 +55,8 @@ def triangulate_frame(
     uv = check_points(uv, min_count=0, name="uv", dim=2)
     camera = camera_from_calibration(calibration)
     plane = calibration.light_plane
+    if plane is None:
+        raise ValueError("calibration: expected a light plane to triangulate on, got none")
     points_cam = intersect_rays_with_plane(camera.rays(uv), plane.normal, plane.d)
     if base_from_flange is None:
         return points_cam
@@ -73,6 +75,8 @@ class Triangulator:
     """
 
     def __init__(self, calibration: Calibration, grid_step_px: float = 4.0) -> None:
+        if calibration.light_plane is None:
+            raise ValueError("calibration: expected a light plane to triangulate on, got none")
         self.calibration = calibration
         self.camera = camera_from_calibration(calibration)
         self.normal = np.asarray(calibration.light_plane.normal, dtype=np.float64)

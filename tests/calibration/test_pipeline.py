@@ -93,8 +93,8 @@ def test_virtual_cell_default_calibration_matches_truth(modern_cell):
     assert na < 0.003 and abs(dd) < 0.02
     assert angle_between_rotations_deg(cal.flange_from_cam, truth.flange_from_cam) < 0.008
     assert np.linalg.norm(cal.flange_from_cam[:3, 3] - truth.flange_from_cam[:3, 3]) < 0.05
-    assert "robot errors" in cal.quality["hand_eye"]["method"]
-    q = cal.quality
+    assert "robot errors" in cal.quality.hand_eye_method
+    q = cal.quality.record
     for key in (
         "method",
         "verdict",
@@ -128,7 +128,7 @@ def test_scanner_calibrate_command_writes_file_and_report(modern_cell, tmp_path)
     assert code == 0
     cal = read_calibration(calib)
     assert angle_between_rotations_deg(cal.flange_from_cam, truth.flange_from_cam) < 0.05
-    page = (tmp_path / "reports" / "calibration.html").read_text()
+    page = (tmp_path / "reports" / "calib.html").read_text()  # named after --out
     assert "Verdict" in page and "data:image/png;base64" in page
 
 

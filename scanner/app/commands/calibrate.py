@@ -71,10 +71,15 @@ def run(args: argparse.Namespace) -> int:
     )
     q = run_.quality
     print(f"wrote {run_.calibration_path}")
+    plane = (
+        "no light plane (no laser images: a camera-only calibration)"
+        if run_.result.calibration.light_plane is None
+        else f"light plane RMS {(q.light_plane_rms_mm or 0.0) * 1000:.1f} um "
+        f"({q.light_plane_frames} frames)"
+    )
     print(
-        f"  intrinsics RMS {q.intrinsics_rms_px:.3f} px; light plane RMS "
-        f"{(q.light_plane_rms_mm or float('nan')) * 1000:.1f} um ({q.light_plane_frames} frames); "
-        f"hand-eye {q.hand_eye_method}, chain RMS {q.hand_eye_rms_px:.3f} px"
+        f"  intrinsics RMS {q.intrinsics_rms_px:.3f} px; {plane}; hand-eye {q.hand_eye_method}, "
+        f"chain RMS {q.hand_eye_rms_px:.3f} px"
     )
     if run_.report_path is not None:
         print(f"  report {run_.report_path}")

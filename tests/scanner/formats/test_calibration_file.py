@@ -62,7 +62,8 @@ def test_calibration_file_round_trips(tmp_path):
     ("mutate", "message"),
     [
         (lambda o: o.update(format="scan-calibration/9"), "format: expected 'scan-calibration/1'"),
-        (lambda o: o.pop("light_plane"), "missing key 'light_plane'"),
+        (lambda o: o.pop("camera"), "missing key 'camera'"),
+        (lambda o: o.update(laser_origin_cam=[1, 2]), "laser_origin_cam: expected [x, y, z]"),
         (
             lambda o: o["camera"].update(K=[[1, 0], [0, 1]]),
             "camera.K: expected a finite 3x3 matrix",
@@ -118,3 +119,30 @@ def test_undetermined_quality_figures_are_written_as_null(tmp_path):
         "std": [0.1, None],
         "rms": None,
     }
+
+
+@pytest.mark.parametrize("plane", [None, "absent"])
+def test_a_camera_only_calibration_reads_and_writes(tmp_path, plane):
+    write_calibration(tmp_path / "c.json", paper_calibration())
+    obj = json.loads((tmp_path / "c.json").read_text())
+    if plane is None:
+        obj["light_plane"] = None
+    else:
+        del obj["light_plane"]
+    (tmp_path / "c.json").write_text(json.dumps(obj))
+    calib = read_calibration(tmp_path / "c.json")
+    assert calib.light_plane is None
+    with pytest.raises(InputError, match="c.json: a camera-only calibration"):
+        calib.require_light_plane(tmp_path / "c.json", "scanning")
+    write_calibration(tmp_path / "d.json", calib)
+    assert json.loads((tmp_path / "d.json").read_text())["light_plane"] is None
+
+
+def test_the_laser_origin_round_trips(tmp_path):
+    calib = paper_calibration()
+    calib.laser_origin_cam = np.array([-150.0, 0.5, 20.0])
+    write_calibration(tmp_path / "c.json", calib)
+    assert json.loads((tmp_path / "c.json").read_text())["laser_origin_cam"] == [-150.0, 0.5, 20.0]
+    np.testing.assert_array_equal(
+        read_calibration(tmp_path / "c.json").laser_origin_cam, calib.laser_origin_cam
+    )
