@@ -36,6 +36,7 @@ from scanner.scanning.stitch import build_cloud, filter_cloud, incidence_cosines
 from scanner.scanning.triangulate import Triangulator
 from scanner.stripe.extract import (
     MODES,
+    StripeFlag,
     StripeOptions,
     auto_half_window,
     estimate_noise,
@@ -47,6 +48,7 @@ __all__ = [
     "ScanOptions",
     "ScanResult",
     "check_scan_inputs",
+    "flag_counts",
     "scan_profiles",
     "scan_session",
 ]
@@ -74,8 +76,12 @@ class ScanOptions:
         Voxel downsampling of the final cloud.
     outlier_neighbors, outlier_std_ratio
         Statistical outlier removal (0 neighbours: off).
+    keep_flagged : bool
+        Keep the flagged points (saturated, ambiguous, low contrast, border, secondary,
+        grazing) in the cloud, with their ``flags``; by default the cloud holds only
+        trusted points (``flags == 0``), so that any tool that opens it sees those only.
     max_incidence_deg : float or None
-        Drop points whose surface (normal from the cloud) is seen, or lit when
+        Flag points whose surface (normal from the cloud) is seen, or lit when
         ``laser_origin_mm`` is given, more obliquely than this. Grazing stripes are wide, dim
         and skewed and their centres biased; on a sphere those points sit at the rim of the
         cap, where they bias the fitted radius most. ``None``: keep every point.
@@ -104,6 +110,7 @@ class ScanOptions:
     voxel_mm: float | None = None
     outlier_neighbors: int = 0
     outlier_std_ratio: float = 2.0
+    keep_flagged: bool = False
     max_incidence_deg: float | None = None
     laser_origin_mm: tuple[float, float, float] | None = None
     incidence_radius_mm: float = 1.5
@@ -162,6 +169,8 @@ class ScanResult:
     chunks_resumed: int = 0
     frames_without_stripe: int = 0
     timings: dict[str, float] = field(default_factory=dict)
+    removed: dict[str, int] = field(default_factory=dict)
+    """Points left out of the cloud per flag (a point may count under several)."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -435,9 +444,10 @@ def _limit_incidence(
     base_from_cam: NDArray,
     options: ScanOptions,
 ) -> tuple[NDArray, dict[str, NDArray]]:
-    """Add ``cos_view``, ``cos_laser`` and drop the points seen or lit beyond the limit.
+    """Add ``cos_view``, ``cos_laser`` and flag the points seen or lit beyond the limit
+    (:attr:`StripeFlag.GRAZING`).
 
-    Points without a normal (isolated) are kept: nothing says they are grazing.
+    Points without a normal (isolated) are not flagged: nothing says they are grazing.
     """
 
     cos_view, cos_laser = incidence_cosines(
@@ -446,17 +456,39 @@ def _limit_incidence(
     limit = np.cos(np.radians(float(options.max_incidence_deg)))  # type: ignore[arg-type]
     grazing = (cos_view < limit) | (cos_laser < limit)  # NaN compares False: kept
     log.info(
-        "incidence limit %.0f deg: %d of %d points dropped (%s)",
+        "incidence limit %.0f deg: %d of %d points grazing (%s)",
         options.max_incidence_deg,
         np.count_nonzero(grazing),
         len(points),
         "view and laser" if options.laser_origin_mm is not None else "view only",
     )
-    keep = ~grazing
-    attributes = {k: v[keep] for k, v in attributes.items()}
-    attributes["cos_view"] = cos_view[keep].astype(np.float32)
-    attributes["cos_laser"] = cos_laser[keep].astype(np.float32)
-    return points[keep], attributes
+    attributes = dict(attributes)
+    attributes["flags"] = attributes["flags"] | np.where(grazing, StripeFlag.GRAZING, 0).astype(
+        np.uint8
+    )
+    attributes["cos_view"] = cos_view.astype(np.float32)
+    attributes["cos_laser"] = cos_laser.astype(np.float32)
+    return points, attributes
+
+
+def flag_counts(flags: NDArray) -> dict[str, int]:
+    """How many points carry each :class:`StripeFlag` (a point may carry several)."""
+    return {
+        f.name.lower(): int(np.count_nonzero(flags & f.value))
+        for f in StripeFlag
+        if f.value and np.any(flags & f.value)
+    }
+
+
+def _drop_flagged(
+    points: NDArray, attributes: dict[str, NDArray]
+) -> tuple[NDArray, dict[str, NDArray], dict[str, int]]:
+    """Only the points without any flag, and how many each reason removed."""
+    flags = attributes["flags"]
+    flagged = flags != 0
+    removed = flag_counts(flags[flagged])
+    keep = ~flagged
+    return points[keep], {k: v[keep] for k, v in attributes.items()}, removed
 
 
 def scan_session(
@@ -586,6 +618,9 @@ def scan_session(
             points, attributes = _limit_incidence(
                 points, attributes, frame_pos, poses @ calibration.flange_from_cam, options
             )
+        removed: dict[str, int] = {}
+        if not options.keep_flagged:
+            points, attributes, removed = _drop_flagged(points, attributes)
         cloud = build_cloud(points, attributes)
         cloud = filter_cloud(
             cloud,
@@ -642,6 +677,7 @@ def scan_session(
         corrections=corrections,
         warnings=warnings,
         chunks_resumed=resumed,
+        removed=removed,
         frames_without_stripe=empty,
         timings={
             "prepare_s": t1 - t0,

@@ -36,6 +36,8 @@ class StripeFlag(IntFlag):
     """The estimator's window reached the image border; a border-safe estimator was used."""
     SECONDARY = 16
     """Not the brightest peak of its line: another stripe segment sharing the line."""
+    GRAZING = 32
+    """Set by scanning: the surface is seen or lit beyond the incidence limit."""
 
 
 @dataclass(frozen=True)

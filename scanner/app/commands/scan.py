@@ -54,6 +54,19 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=None,
         help="keep per-frame profiles here so an interrupted run resumes",
     )
+    p.add_argument(
+        "--keep-flagged",
+        action="store_true",
+        help="keep flagged points (saturated, ambiguous, low contrast, border, secondary, "
+        "grazing) in the cloud with their flags; by default it holds trusted points only",
+    )
+    p.add_argument(
+        "--max-incidence-deg",
+        type=float,
+        default=None,
+        help="flag points seen (or, with the calibration's laser origin, lit) more obliquely "
+        "than this",
+    )
     p.add_argument("--workers", type=int, default=2, help="extraction processes (default 2)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -75,6 +88,8 @@ def run(args: argparse.Namespace) -> int:
         normals_radius_mm=args.normals_mm,
         icp=args.icp,
         workers=args.workers,
+        keep_flagged=args.keep_flagged,
+        max_incidence_deg=args.max_incidence_deg,
     )
     run_ = stages.scan(
         args.sessions,
@@ -91,6 +106,9 @@ def run(args: argparse.Namespace) -> int:
         f"  {result.n_points} points from {result.n_frames} frames in {result.n_sweeps} "
         f"sweep(s), {result.seconds:.1f} s ({rate:,.0f} points/s), mode {options.mode}"
     )
+    if result.removed:
+        reasons = ", ".join(f"{n} {name.replace('_', ' ')}" for name, n in result.removed.items())
+        print(f"  left out as flagged (--keep-flagged keeps them): {reasons}")
     if result.chunks_resumed:
         print(f"  resumed {result.chunks_resumed} saved chunk(s) from {args.workdir}")
     if result.frames_without_stripe:

@@ -93,3 +93,20 @@ def test_bad_input_exits_2_with_one_line(sweep, tmp_path, capsys, change, reason
     assert code == 2
     assert len(err) == 1 and err[0].startswith("scanner scan: error:") and reason in err[0]
     assert not out.exists()
+
+
+def test_the_cloud_holds_trusted_points_unless_asked(sweep, tmp_path, capsys):
+    # The step's walls are seen obliquely: with an incidence limit they are flagged grazing.
+    session, cal = sweep
+    args = ["scan", str(session), "--calibration", str(cal), "--quiet", "--max-incidence-deg", "30"]
+    assert main([*args, "--out", str(tmp_path / "trusted.ply")]) == 0
+    printed = capsys.readouterr().out
+    assert main([*args, "--out", str(tmp_path / "all.ply"), "--keep-flagged"]) == 0
+    trusted = read_cloud(tmp_path / "trusted.ply").point["flags"].numpy()
+    every = read_cloud(tmp_path / "all.ply").point["flags"].numpy()
+    assert np.all(trusted == 0)
+    n_flagged = int(np.count_nonzero(every))
+    assert n_flagged > 0 and len(every) == len(trusted) + n_flagged
+    grazing = int(np.count_nonzero(every & 32))
+    assert "left out as flagged (--keep-flagged keeps them): " in printed
+    assert f"{grazing} grazing" in printed
