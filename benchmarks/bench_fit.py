@@ -37,7 +37,7 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from metrology.fit import fit_circle, fit_cylinder, fit_line, fit_plane, fit_sphere  # noqa: E402
+from metrology.fits import fit_circle, fit_cylinder, fit_line, fit_plane, fit_sphere  # noqa: E402
 
 AXIS = np.array([0.3, 0.2, 1.0]) / np.linalg.norm([0.3, 0.2, 1.0])
 CENTER = np.array([620.0, -35.0, 48.0])

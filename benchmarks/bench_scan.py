@@ -151,7 +151,7 @@ def _local_sphere_fit(p: np.ndarray) -> tuple[np.ndarray, float]:
 
 def _fit_sphere(p: np.ndarray) -> tuple[np.ndarray, float, float]:
     try:
-        from metrology.fit import fit_sphere
+        from metrology.fits import fit_sphere
 
         f = fit_sphere(p)
         if f:

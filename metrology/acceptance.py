@@ -54,7 +54,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from metrology.fit import Fit, PlaneFit, SphereFit, fit_plane, fit_sphere
+from metrology.fits import Fit, PlaneFit, SphereFit, fit_plane, fit_sphere
 from metrology.measure import cloud_points
 from metrology.plan import Region
 from scanner.core.config import load_config

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from metrology.fit import (
+from metrology.fits import (
     CircleFit,
     CylinderFit,
     Fit,

@@ -250,7 +250,7 @@ def test_measure_command_strict_exit_and_bad_input(tmp_path: Path, capsys, monke
 
 
 def test_angles_and_distances_between_kinds():
-    from metrology.fit import fit_cylinder, fit_line, fit_plane, fit_sphere
+    from metrology.fits import fit_cylinder, fit_line, fit_plane, fit_sphere
     from metrology.measure import evaluate_measurement
     from metrology.plan import MeasurementSpec
 

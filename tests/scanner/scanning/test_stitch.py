@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from metrology.fit import fit_sphere
+from metrology.fits import fit_sphere
 from scanner.scanning.stitch import incidence_cosines
 
 RADIUS_MM = 12.7

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize
 
-from metrology.fit import (
+from metrology.fits import (
     fit_circle,
     fit_cylinder,
     fit_line,
@@ -17,7 +17,7 @@ from metrology.fit import (
     min_zone_sphericity,
 )
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 REAL = Path(os.environ.get("SCANNER_REAL_DATA", REPO.parent / "shared" / "data" / "real"))
 
 UM = 1e-3  # one micrometre in mm
