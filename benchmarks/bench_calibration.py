@@ -45,6 +45,7 @@ from calibration.pipeline import calibrate_session, target_extent_mm
 from scanner.core.camera import CameraModel
 from scanner.core.conventions import angle_between_rotations_deg
 from scanner.core.images import load_gray_image, load_laser_images
+from scanner.core.planes import plane_errors
 from scanner.core.targets import ChessboardTarget, CircleGridTarget
 from scanner.formats.calibration_file import LightPlane
 from scanner.formats.session import read_session
@@ -56,15 +57,6 @@ REPO = Path(__file__).resolve().parents[1]
 
 def real_data_root() -> Path:
     return Path(os.environ.get("SCANNER_REAL_DATA", REPO.parent / "shared" / "data" / "real"))
-
-
-def plane_errors(plane: LightPlane, truth: LightPlane) -> tuple[float, float]:
-    """Angle between normals (deg) and difference of d (mm), sign-aligned."""
-    n, d = plane.normal, plane.d
-    if n @ truth.normal < 0:
-        n, d = -n, -d
-    ang = float(np.degrees(np.arccos(np.clip(n @ truth.normal, -1, 1))))
-    return ang, float(d - truth.d)
 
 
 def flange_plane_errors(

@@ -38,10 +38,13 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from calibration.detection.detect import detect_target
+from calibration.detection.observations import TargetObservation
 from calibration.intrinsics import IntrinsicsResult, calibrate_intrinsics
 from scanner.core.camera import CameraModel
 from scanner.core.conventions import make_transform
-from scanner.core.targets import ChessboardTarget
+from scanner.core.images import load_gray_image
+from scanner.formats.reference_data import ZHANG_MSR_IMAGE_SIZE, zhang_msr_corners
+from scanner.core.targets import ChessboardTarget, CircleGridTarget
 
 log = logging.getLogger("bench_intrinsics")
 
@@ -369,12 +372,27 @@ def real_data_dir() -> Path:
     return Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "real"
 
 
+#: Real data sets detected and calibrated whole: folder, image pattern, target, reference.
+DETECTED_SETS = (
+    (
+        "zhaocongyang_linelight/calib_picture",
+        "*.jpg",
+        CircleGridTarget(grid=(7, 7), pitch_mm=37.5),
+        "zhaocongyang circle grid",
+        "fx 1144.44, fy 1142.49, 916.06, 522.05",
+    ),
+    (
+        "kuka_1",
+        "*.png",
+        ChessboardTarget(inner_corners=(28, 17), square_mm=20.0),
+        "kuka_1 chessboard",
+        "OpenCV: RMS 0.0738, 2057.96, 2058.36, 960.12, 610.09",
+    ),
+)
+
+
 def real_rows() -> list[str]:
     """Real data sets against their published or reference results."""
-    from calibration.detection.observations import TargetObservation
-    from scanner.core.images import load_gray_image
-    from scanner.core.targets import CircleGridTarget
-
     root = real_data_dir()
     if not root.is_dir():
         return [f"\n(real data not found at {root}: skipped)"]
@@ -392,62 +410,31 @@ def real_rows() -> list[str]:
 
     zhang = root / "zhang_msr"
     if zhang.is_dir():
-        model = np.loadtxt(zhang / "Model.txt").reshape(-1, 2)
-        model_t = np.column_stack([model, np.zeros(len(model))])
-        obs = [
-            TargetObservation(
-                True,
-                "",
-                (640, 480),
-                "chessboard",
-                np.loadtxt(zhang / f"data{i}.txt").reshape(-1, 2),
-                model_t,
-            )
-            for i in range(1, 6)
-        ]
+        model_t, views = zhang_msr_corners(zhang)
+        size = ZHANG_MSR_IMAGE_SIZE
+        obs = [TargetObservation(True, "", size, "chessboard", uv, model_t) for uv in views]
         ref = "832.5, 832.53, 303.959, 206.585, k -0.2286, 0.1904 (published)"
         for how, fixed in (
             ("default, k1 k2 (Zhang's model)", ("p1", "p2", "k3")),
             ("default, 5 terms", ()),
         ):
             t0 = time.perf_counter()
-            r = calibrate_intrinsics(obs, (640, 480), fixed=fixed)
+            r = calibrate_intrinsics(obs, size, fixed=fixed)
             out.append(line("zhang_msr dataN.txt corners", how, r, ref, time.perf_counter() - t0))
         out.append(
             "| zhang_msr images | - | | | | | | | | not detected: the board is 64 separate "
             "squares, not a chessboard (OpenCV finds no X-corners); the given corners are used |"
             " |"
         )
-    grid = root / "zhaocongyang_linelight" / "calib_picture"
-    if grid.is_dir():
-        target = CircleGridTarget(grid=(7, 7), pitch_mm=37.5)
+    for folder, pattern, target, label, reference in DETECTED_SETS:
+        images = root / folder
+        if not images.is_dir():
+            continue
         t0 = time.perf_counter()
-        obs = [detect_target(load_gray_image(p), target) for p in sorted(grid.glob("*.jpg"))]
+        obs = [detect_target(load_gray_image(p), target) for p in sorted(images.glob(pattern))]
         r = calibrate_intrinsics(obs, obs[0].image_size)
-        out.append(
-            line(
-                f"zhaocongyang circle grid ({sum(map(bool, obs))}/{len(obs)})",
-                "detect + default",
-                r,
-                "fx 1144.44, fy 1142.49, 916.06, 522.05",
-                time.perf_counter() - t0,
-            )
-        )
-    kuka = root / "kuka_1"
-    if kuka.is_dir():
-        target = ChessboardTarget(inner_corners=(28, 17), square_mm=20.0)
-        t0 = time.perf_counter()
-        obs = [detect_target(load_gray_image(p), target) for p in sorted(kuka.glob("*.png"))]
-        r = calibrate_intrinsics(obs, obs[0].image_size)
-        out.append(
-            line(
-                f"kuka_1 chessboard ({sum(map(bool, obs))}/{len(obs)})",
-                "detect + default",
-                r,
-                "OpenCV: RMS 0.0738, 2057.96, 2058.36, 960.12, 610.09",
-                time.perf_counter() - t0,
-            )
-        )
+        name = f"{label} ({sum(map(bool, obs))}/{len(obs)})"
+        out.append(line(name, "detect + default", r, reference, time.perf_counter() - t0))
     return out
 
 

@@ -31,6 +31,7 @@ import numpy as np
 
 from scanner.app.plc.config import PlcConfig
 from scanner.app.plc.jobs import JobContext, JobOutcome
+from scanner.core.subprocesses import start_module
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -208,22 +209,11 @@ worker = "{worker}"
 """,
             encoding="utf-8",
         )
-        env = {**os.environ, "PYTHONPATH": str(REPO)}
-        proc = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "scanner.app.cli",
-                "serve",
-                "--config",
-                str(config),
-                "--port",
-                "0",
-            ],
-            cwd=REPO,
-            env=env,
+        proc = start_module(
+            "scanner.app.cli",
+            ["serve", "--config", str(config), "--port", "0"],
+            REPO,
             stdout=subprocess.PIPE,
-            text=True,
         )
         try:
             line = proc.stdout.readline() if proc.stdout else ""

@@ -24,6 +24,7 @@ from scipy.spatial.transform import Rotation
 
 from scanner.core.camera import CameraModel, intersect_rays_with_plane
 from scanner.core.conventions import check_points, make_transform, orthonormalize
+from scanner.core.outcome import Outcome
 from scanner.formats.calibration_file import LightPlane
 
 __all__ = [
@@ -39,7 +40,7 @@ logger = logging.getLogger(__name__)
 
 
 @dataclass
-class PoseResult:
+class PoseResult(Outcome):
     """``cam_from_target`` of one view, or a failed estimate (falsy) with its ``reason``.
 
     Attributes
@@ -54,16 +55,11 @@ class PoseResult:
         Gauss-Newton covariance scaled by the residual variance.
     """
 
-    ok: bool
-    reason: str = ""
     cam_from_target: NDArray | None = None
     rms_px: float = float("nan")
     residuals_px: NDArray = field(default_factory=lambda: np.zeros((0, 2)))
     std_rotation_deg: NDArray = field(default_factory=lambda: np.full(3, np.nan))
     std_translation_mm: NDArray = field(default_factory=lambda: np.full(3, np.nan))
-
-    def __bool__(self) -> bool:
-        return self.ok
 
 
 def project_target(

@@ -18,13 +18,14 @@ from __future__ import annotations
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from scanner.core.camera import CameraModel, intersect_rays_with_plane
 from scanner.core.conventions import check_points, transform_points
+from scanner.core.outcome import Outcome
 from scanner.formats.calibration_file import LightPlane
 
 __all__ = [
@@ -44,7 +45,7 @@ logger = logging.getLogger(__name__)
 
 
 @dataclass
-class PlaneFit:
+class PlaneFit(Outcome):
     """A plane ``normal . p + d = 0`` fitted to points, or a failed fit (falsy) with ``reason``.
 
     Attributes
@@ -59,8 +60,6 @@ class PlaneFit:
         One-sigma uncertainty from the residual variance and the points' spread.
     """
 
-    ok: bool
-    reason: str = ""
     normal: NDArray = field(default_factory=lambda: np.full(3, np.nan))
     d: float = float("nan")
     rms_mm: float = float("nan")
@@ -68,9 +67,6 @@ class PlaneFit:
     inliers: NDArray = field(default_factory=lambda: np.zeros(0, bool))
     std_normal_deg: float = float("nan")
     std_d_mm: float = float("nan")
-
-    def __bool__(self) -> bool:
-        return self.ok
 
 
 def _tls(points: NDArray) -> tuple[NDArray, float, NDArray]:
@@ -265,11 +261,9 @@ class LaserView:
 
 
 @dataclass
-class LightPlaneResult:
+class LightPlaneResult(Outcome):
     """The calibrated plane with its quality record, or a failure (falsy) with ``reason``."""
 
-    ok: bool
-    reason: str = ""
     plane: LightPlane | None = None
     method: str = "default"
     rms_mm: float = float("nan")
@@ -281,20 +275,21 @@ class LightPlaneResult:
     rejected: list[dict[str, Any]] = field(default_factory=list)
     points_cam: NDArray = field(default_factory=lambda: np.zeros((0, 3)))
 
-    def __bool__(self) -> bool:
-        return self.ok
+    #: The fields :meth:`quality` reports, in order.
+    _QUALITY_FIELDS: ClassVar[tuple[str, ...]] = (
+        "method",
+        "rms_mm",
+        "max_abs_mm",
+        "std_normal_deg",
+        "std_d_mm",
+        "n_points",
+        "per_frame",
+        "rejected",
+    )
 
     def quality(self) -> dict[str, Any]:
-        return {
-            "method": self.method,
-            "rms_mm": self.rms_mm,
-            "max_abs_mm": self.max_abs_mm,
-            "std_normal_deg": self.std_normal_deg,
-            "std_d_mm": self.std_d_mm,
-            "n_points": self.n_points,
-            "per_frame": self.per_frame,
-            "rejected": self.rejected,
-        }
+        """The calibration file's ``quality`` record of the light plane."""
+        return {name: getattr(self, name) for name in self._QUALITY_FIELDS}
 
 
 def calibrate_light_plane(

@@ -21,7 +21,7 @@ Nothing outside this module uses OpenCV's names.
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import cv2
 import numpy as np
@@ -67,6 +67,30 @@ def _stack(transforms: Sequence[ArrayLike] | NDArray, name: str) -> NDArray:
     return arr
 
 
+def _checked_poses(
+    base_from_flange: Sequence[ArrayLike] | NDArray,
+    cam_from_target: Sequence[ArrayLike] | NDArray,
+    method: str,
+    methods: Mapping[str, int],
+) -> tuple[NDArray, NDArray]:
+    """The robot and camera poses as ``(N, 4, 4)`` stacks, checked for one of ``methods``.
+
+    Raises
+    ------
+    ValueError
+        Unknown method, poses of the wrong shape, mismatched counts or fewer than 3 poses.
+    """
+    if method not in methods:
+        raise ValueError(f"method: expected one of {', '.join(methods)}, got {method!r}")
+    bf = _stack(base_from_flange, "base_from_flange")
+    ct = _stack(cam_from_target, "cam_from_target")
+    if len(bf) != len(ct) or len(bf) < 3:
+        raise ValueError(
+            f"expected the same number (>= 3) of robot and camera poses, got {len(bf)} and {len(ct)}"
+        )
+    return bf, ct
+
+
 def _as_transform(rot: NDArray, trans: NDArray) -> NDArray:
     return make_transform(orthonormalize(np.asarray(rot)), np.asarray(trans).reshape(3))
 
@@ -97,14 +121,7 @@ def hand_eye_ax_xb(
     ValueError
         Unknown method, mismatched counts, fewer than 3 poses, or OpenCV failing.
     """
-    if method not in AX_XB_METHODS:
-        raise ValueError(f"method: expected one of {', '.join(AX_XB_METHODS)}, got {method!r}")
-    bf = _stack(base_from_flange, "base_from_flange")
-    ct = _stack(cam_from_target, "cam_from_target")
-    if len(bf) != len(ct) or len(bf) < 3:
-        raise ValueError(
-            f"expected the same number (>= 3) of robot and camera poses, got {len(bf)} and {len(ct)}"
-        )
+    bf, ct = _checked_poses(base_from_flange, cam_from_target, method, AX_XB_METHODS)
     r_g2b, t_g2b = _split(bf)
     r_t2c, t_t2c = _split(ct)
     try:
@@ -137,14 +154,7 @@ def robot_world_hand_eye_ax_zb(
     -------
     flange_from_cam, base_from_target : ndarray, shape (4, 4) each
     """
-    if method not in AX_ZB_METHODS:
-        raise ValueError(f"method: expected one of {', '.join(AX_ZB_METHODS)}, got {method!r}")
-    bf = _stack(base_from_flange, "base_from_flange")
-    ct = _stack(cam_from_target, "cam_from_target")
-    if len(bf) != len(ct) or len(bf) < 3:
-        raise ValueError(
-            f"expected the same number (>= 3) of robot and camera poses, got {len(bf)} and {len(ct)}"
-        )
+    bf, ct = _checked_poses(base_from_flange, cam_from_target, method, AX_ZB_METHODS)
     flange_from_base = np.stack([invert_transform(t) for t in bf])
     r_w2c, t_w2c = _split(ct)
     r_b2g, t_b2g = _split(flange_from_base)

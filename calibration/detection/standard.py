@@ -31,6 +31,35 @@ def _to_u8(image: NDArray) -> NDArray:
     return np.clip((g - lo) / (hi - lo) * 255.0, 0, 255).astype(np.uint8)
 
 
+def _found(
+    kind: str,
+    size: tuple[int, int],
+    points_px: NDArray,
+    target: ChessboardTarget | CircleGridTarget,
+) -> TargetObservation:
+    """The observation of a standard target found whole: points in OpenCV's order, ``c0, c1, ...``.
+
+    Parameters
+    ----------
+    kind : str
+        ``"chessboard"`` or ``"circle_grid"``.
+    size : tuple of int
+        Image ``(width, height)``.
+    points_px : ndarray, shape (N, 2)
+        The found points, in the order of ``target.object_points()``.
+    target : ChessboardTarget or CircleGridTarget
+    """
+    return TargetObservation(
+        ok=True,
+        reason="",
+        image_size=size,
+        kind=kind,
+        points_px=points_px,
+        points_target=target.object_points(),
+        point_names=[f"c{i}" for i in range(len(points_px))],
+    )
+
+
 def detect_chessboard(image: NDArray, target: ChessboardTarget) -> TargetObservation:
     """Inner corners of a chessboard (``findChessboardCornersSB``).
 
@@ -60,15 +89,7 @@ def detect_chessboard(image: NDArray, target: ChessboardTarget) -> TargetObserva
         return TargetObservation.failed(
             f"chessboard: expected {n} corners, got {len(pts)}", size, "chessboard"
         )
-    return TargetObservation(
-        ok=True,
-        reason="",
-        image_size=size,
-        kind="chessboard",
-        points_px=pts,
-        points_target=target.object_points(),
-        point_names=[f"c{i}" for i in range(n)],
-    )
+    return _found("chessboard", size, pts, target)
 
 
 def _blob_detector(image_shape: tuple[int, ...]) -> cv2.SimpleBlobDetector:
@@ -104,13 +125,4 @@ def detect_circle_grid(image: NDArray, target: CircleGridTarget) -> TargetObserv
         return TargetObservation.failed(
             f"circle grid {pattern[0]}x{pattern[1]} not found", size, "circle_grid"
         )
-    pts = centres.reshape(-1, 2).astype(np.float64)
-    return TargetObservation(
-        ok=True,
-        reason="",
-        image_size=size,
-        kind="circle_grid",
-        points_px=pts,
-        points_target=target.object_points(),
-        point_names=[f"c{i}" for i in range(len(pts))],
-    )
+    return _found("circle_grid", size, centres.reshape(-1, 2).astype(np.float64), target)

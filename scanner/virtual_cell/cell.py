@@ -28,6 +28,7 @@ from scanner.core.targets import (
     OrientationMarker,
     TargetSpec,
 )
+from scanner.virtual_cell.scene import PrintedTarget
 
 __all__ = [
     "CameraConfig",
@@ -192,13 +193,16 @@ class LaserConfig:
 
 @dataclass(frozen=True)
 class PrintConfig:
-    """How the target and the scene look: albedos (0..1) and the card's white margin."""
+    """How the target and the scene look: albedos (0..1) and the card's white margin.
 
-    paper_albedo: float = 0.85
-    ink_albedo: float = 0.05
+    The card's own settings default to those of a :class:`PrintedTarget`.
+    """
+
+    paper_albedo: float = PrintedTarget.paper_albedo
+    ink_albedo: float = PrintedTarget.ink_albedo
     background_albedo: float = 0.2
-    card_margin_mm: float = 12.0
-    circle_grid_diameter_ratio: float = 0.5
+    card_margin_mm: float = PrintedTarget.card_margin_mm
+    circle_grid_diameter_ratio: float = PrintedTarget.circle_grid_diameter_ratio
     """Printed circle diameter of a circle grid as a fraction of its pitch."""
     hand_held_background_mm: float = 250.0
     """Frames without pose: distance from the target centre to a wall behind it."""

@@ -9,7 +9,7 @@ lower bound on the distance to the nearest albedo edge, which drives adaptive su
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -24,6 +24,7 @@ from scanner.core.targets import (
 
 __all__ = [
     "BoxSurface",
+    "Cut",
     "CylinderSurface",
     "PlaneSurface",
     "PrintedTarget",
@@ -159,6 +160,34 @@ def _circle_grid_ink(
     return ink, edge
 
 
+@dataclass(frozen=True)
+class Cut:
+    """A plane ``normal . p + d = 0`` cutting a surface, and how to sample the cut.
+
+    Parameters
+    ----------
+    normal : ndarray, shape (3,)
+        Unit normal of the plane, world frame.
+    d : float
+        Offset of the plane, mm.
+    step_mm : float
+        Spacing of the sampled points along the cut.
+    clip_center : ndarray, shape (3,), optional
+    clip_radius : float
+        Unbounded surfaces are cut only within ``clip_radius`` of ``clip_center``.
+    """
+
+    normal: NDArray
+    d: float
+    step_mm: float
+    clip_center: NDArray | None = None
+    clip_radius: float = np.inf
+
+    def unclipped(self) -> Cut:
+        """The same plane and step without the clip (for bounded parts of a surface)."""
+        return replace(self, clip_center=None, clip_radius=np.inf)
+
+
 class Surface:
     """A surface of the scene in the world frame. Subclasses implement the geometry."""
 
@@ -197,8 +226,14 @@ class Surface:
     ) -> NDArray:
         """Points ``(M, 3)`` sampled every ``step_mm`` on this surface's cut by a plane.
 
-        Unbounded surfaces are cut only within ``clip_radius`` of ``clip_center``.
+        The plane is ``normal . p + d = 0``; unbounded surfaces are cut only within
+        ``clip_radius`` of ``clip_center``.
         """
+        cut = Cut(np.asarray(normal, dtype=np.float64), float(d), step_mm, clip_center, clip_radius)
+        return self._section(cut)
+
+    def _section(self, cut: Cut) -> NDArray:
+        """:meth:`section` for one :class:`Cut`; subclasses implement the geometry."""
         raise NotImplementedError
 
 
@@ -264,17 +299,10 @@ class PlaneSurface(Surface):
         loc = self.local(points)
         return self.printed.albedo(loc[:, 0], loc[:, 1])
 
-    def section(
-        self,
-        normal: NDArray,
-        d: float,
-        step_mm: float,
-        clip_center: NDArray | None = None,
-        clip_radius: float = np.inf,
-    ) -> NDArray:
+    def _section(self, cut: Cut) -> NDArray:
         # Line of the two planes in local coordinates: points with z = 0 and n_l . p + d_l = 0.
-        n_l = self._rot.T @ normal
-        d_l = float(normal @ self._p0 + d)
+        n_l = self._rot.T @ cut.normal
+        d_l = float(cut.normal @ self._p0 + cut.d)
         a, b = n_l[0], n_l[1]
         if np.hypot(a, b) < 1e-9:
             return np.zeros((0, 3))
@@ -282,10 +310,10 @@ class PlaneSurface(Surface):
         base = -d_l / g**2 * np.array([a, b])
         direction = np.array([-b, a]) / g
         lo, hi = -1e5, 1e5
-        if clip_center is not None and np.isfinite(clip_radius):
-            c_l = self.local(np.asarray(clip_center, dtype=np.float64)[None])[0]
+        if cut.clip_center is not None and np.isfinite(cut.clip_radius):
+            c_l = self.local(np.asarray(cut.clip_center, dtype=np.float64)[None])[0]
             mid = float((c_l[:2] - base) @ direction)
-            lo, hi = mid - clip_radius, mid + clip_radius
+            lo, hi = mid - cut.clip_radius, mid + cut.clip_radius
         if self.bounds_mm is not None:
             x0, x1, y0, y1 = self.bounds_mm
             for k, (low, high) in enumerate(((x0, x1), (y0, y1))):
@@ -297,10 +325,19 @@ class PlaneSurface(Surface):
                 lo, hi = max(lo, s0), min(hi, s1)
             if hi <= lo:
                 return np.zeros((0, 3))
-        s = np.arange(lo, hi, step_mm)
+        s = np.arange(lo, hi, cut.step_mm)
         loc = np.zeros((len(s), 3))
         loc[:, :2] = base + s[:, None] * direction
         return loc @ self._rot.T + self._p0
+
+
+def _orthonormal_pair(axis: NDArray) -> tuple[NDArray, NDArray]:
+    """Two unit vectors completing ``axis`` (unit) to a right-handed orthonormal frame."""
+    e1 = np.cross(axis, [1.0, 0.0, 0.0])
+    if np.linalg.norm(e1) < 0.1:
+        e1 = np.cross(axis, [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(axis, e1)
 
 
 @dataclass
@@ -341,25 +378,14 @@ class SphereSurface(Surface):
         v = points - self.center
         return v / np.linalg.norm(v, axis=1, keepdims=True)
 
-    def section(
-        self,
-        normal: NDArray,
-        d: float,
-        step_mm: float,
-        clip_center: NDArray | None = None,
-        clip_radius: float = np.inf,
-    ) -> NDArray:
-        f = float(normal @ self.center + d)
+    def _section(self, cut: Cut) -> NDArray:
+        f = float(cut.normal @ self.center + cut.d)
         if abs(f) >= self.radius:
             return np.zeros((0, 3))
-        c = self.center - f * normal
+        c = self.center - f * cut.normal
         rho = np.sqrt(self.radius**2 - f**2)
-        e1 = np.cross(normal, [1.0, 0.0, 0.0])
-        if np.linalg.norm(e1) < 0.1:
-            e1 = np.cross(normal, [0.0, 1.0, 0.0])
-        e1 /= np.linalg.norm(e1)
-        e2 = np.cross(normal, e1)
-        n = max(int(np.ceil(2 * np.pi * rho / step_mm)), 16)
+        e1, e2 = _orthonormal_pair(cut.normal)
+        n = max(int(np.ceil(2 * np.pi * rho / cut.step_mm)), 16)
         th = np.linspace(0, 2 * np.pi, n, endpoint=False)
         return c + rho * (np.cos(th)[:, None] * e1 + np.sin(th)[:, None] * e2)
 
@@ -380,14 +406,6 @@ def _bounded(
     return out
 
 
-def _orthonormal_pair(axis: NDArray) -> tuple[NDArray, NDArray]:
-    e1 = np.cross(axis, [1.0, 0.0, 0.0])
-    if np.linalg.norm(e1) < 0.1:
-        e1 = np.cross(axis, [0.0, 1.0, 0.0])
-    e1 /= np.linalg.norm(e1)
-    return e1, np.cross(axis, e1)
-
-
 @dataclass
 class CylinderSurface(Surface):
     """A closed cylinder between axis end points ``p0`` and ``p1`` (world frame), mm."""
@@ -399,8 +417,7 @@ class CylinderSurface(Surface):
     albedo_value: float = 0.6
 
     def __post_init__(self) -> None:
-        self.p0 = np.asarray(self.p0, dtype=np.float64)
-        self.p1 = np.asarray(self.p1, dtype=np.float64)
+        self.p0, self.p1 = (np.asarray(p, dtype=np.float64) for p in (self.p0, self.p1))
         axis = self.p1 - self.p0
         self.length = float(np.linalg.norm(axis))
         self.axis = axis / self.length
@@ -458,32 +475,25 @@ class CylinderSurface(Surface):
         cap = np.where(s[:, None] > self.length / 2, self.axis, -self.axis)
         return np.where(on_side[:, None], out, cap)
 
-    def section(
-        self,
-        normal: NDArray,
-        d: float,
-        step_mm: float,
-        clip_center: NDArray | None = None,
-        clip_radius: float = np.inf,
-    ) -> NDArray:
+    def _section(self, cut: Cut) -> NDArray:
         e1, e2 = _orthonormal_pair(self.axis)
-        na = float(normal @ self.axis)
+        na = float(cut.normal @ self.axis)
         parts = []
         if abs(na) > 1e-9:
-            n = max(int(np.ceil(2 * np.pi * self.radius / step_mm * 3)), 32)
+            n = max(int(np.ceil(2 * np.pi * self.radius / cut.step_mm * 3)), 32)
             th = np.linspace(0, 2 * np.pi, n, endpoint=False)
             ring = self.radius * (np.cos(th)[:, None] * e1 + np.sin(th)[:, None] * e2)
-            s = -(normal @ self.p0 + d + ring @ normal) / na
+            s = -(cut.normal @ self.p0 + cut.d + ring @ cut.normal) / na
             ok = (s >= 0) & (s <= self.length)
             parts.append(self.p0 + ring[ok] + s[ok, None] * self.axis)
         else:  # plane parallel to the axis: two straight lines
-            f0 = float(normal @ self.p0 + d)
-            nn = np.array([normal @ e1, normal @ e2])
+            f0 = float(cut.normal @ self.p0 + cut.d)
+            nn = np.array([cut.normal @ e1, cut.normal @ e2])
             g = np.linalg.norm(nn)
             if g > 1e-12 and abs(f0) < self.radius * g:
                 phi0 = np.arctan2(nn[1], nn[0])
                 dphi = np.arccos(-f0 / (self.radius * g))
-                s = np.arange(0, self.length, step_mm)
+                s = np.arange(0, self.length, cut.step_mm)
                 for phi in (phi0 + dphi, phi0 - dphi):
                     rim = self.radius * (np.cos(phi) * e1 + np.sin(phi) * e2)
                     parts.append(self.p0 + rim + s[:, None] * self.axis)
@@ -491,7 +501,7 @@ class CylinderSurface(Surface):
             cap = PlaneSurface(
                 _frame(c, e1, e2, self.axis), bounds_mm=(-self.radius, self.radius) * 2
             )
-            p = cap.section(normal, d, step_mm)
+            p = cap._section(cut.unclipped())
             if len(p):
                 parts.append(p[np.linalg.norm(p - c, axis=1) <= self.radius])
         return np.concatenate(parts) if parts else np.zeros((0, 3))
@@ -549,15 +559,8 @@ class BoxSurface(Surface):
         normals = np.stack([f._n for f in self._faces])
         return normals[k]
 
-    def section(
-        self,
-        normal: NDArray,
-        d: float,
-        step_mm: float,
-        clip_center: NDArray | None = None,
-        clip_radius: float = np.inf,
-    ) -> NDArray:
-        parts = [f.section(normal, d, step_mm) for f in self._faces]
+    def _section(self, cut: Cut) -> NDArray:
+        parts = [f._section(cut.unclipped()) for f in self._faces]
         parts = [p for p in parts if len(p)]
         return np.concatenate(parts) if parts else np.zeros((0, 3))
 
@@ -611,9 +614,7 @@ def section_points(
     """
     pts, ids = [], []
     for k, s in enumerate(surfaces):
-        p = s.section(
-            np.asarray(normal, dtype=np.float64), float(d), step_mm, clip_center, clip_radius
-        )
+        p = s.section(normal, d, step_mm, clip_center, clip_radius)
         if len(p):
             pts.append(p)
             ids.append(np.full(len(p), k, dtype=np.int32))

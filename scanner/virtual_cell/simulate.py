@@ -140,34 +140,20 @@ def plan_cell(
         )
 
     calib: list[FramePlan] = []
-    for _ in range(cap.hand_held_frames):
-        c_t = hand_held_view(cell, rng)
-        calib.append(
-            FramePlan(
-                "calibration",
-                len(calib),
-                "hand_held",
-                "",
-                noise_seed("calibration", len(calib)),
-                True,
-                True,
-                c_t,
+    # Frames without pose (the target held in front of the camera), stage by stage.
+    unposed = (
+        ("hand_held", cap.hand_held_frames, hand_held_view),
+        ("light_plane", cap.light_plane_frames, light_plane_view),
+    )
+    for stage, count, view in unposed:
+        for _ in range(count):
+            c_t = view(cell, rng)
+            fid = len(calib)
+            calib.append(
+                FramePlan(
+                    "calibration", fid, stage, "", noise_seed("calibration", fid), True, True, c_t
+                )
             )
-        )
-    for _ in range(cap.light_plane_frames):
-        c_t = light_plane_view(cell, rng)
-        calib.append(
-            FramePlan(
-                "calibration",
-                len(calib),
-                "light_plane",
-                "",
-                noise_seed("calibration", len(calib)),
-                True,
-                True,
-                c_t,
-            )
-        )
     for _ in range(cap.posed_frames):
         calib.append(posed("calibration", len(calib), "posed", "", posed_view(cell, rng)))
     aims = [a for a in ("O", "A", "C") if a in named]

@@ -10,6 +10,7 @@ from calibration.detection.conics import fit_conic, fit_line, harmonic_conjugate
 from calibration.detection.observations import AxisObservation, RingObservation, TargetObservation
 from calibration.intrinsics import calibrate_intrinsics, paper_intrinsics
 from scanner.core.conventions import make_transform
+from scanner.formats.reference_data import ZHANG_MSR_IMAGE_SIZE, zhang_msr_corners
 
 SIZE = (1280, 1024)
 K_TRUE = np.array([[1800.0, 0.0, 652.3], [0.0, 1797.5, 498.7], [0.0, 0.0, 1.0]])
@@ -203,21 +204,11 @@ def test_zhang_published_result_from_given_corners():
     root = real_data_dir() / "zhang_msr"
     if not (root / "Model.txt").is_file():
         pytest.skip(f"real data not found at {root} (set SCANNER_REAL_DATA)")
-    model = np.loadtxt(root / "Model.txt").reshape(-1, 2)
-    model_t = np.column_stack([model, np.zeros(len(model))])
-    obs = [
-        TargetObservation(
-            True,
-            "",
-            (640, 480),
-            "chessboard",
-            np.loadtxt(root / f"data{i}.txt").reshape(-1, 2),
-            model_t,
-        )
-        for i in range(1, 6)
-    ]
+    model_t, views = zhang_msr_corners(root)
+    size = ZHANG_MSR_IMAGE_SIZE
+    obs = [TargetObservation(True, "", size, "chessboard", uv, model_t) for uv in views]
     # Zhang's published model: two radial terms (his skew 0.2 is negligible).
-    res = calibrate_intrinsics(obs, (640, 480), fixed=("p1", "p2", "k3"))
+    res = calibrate_intrinsics(obs, size, fixed=("p1", "p2", "k3"))
     assert res.fx == pytest.approx(832.5, rel=1e-3)
     assert res.fy == pytest.approx(832.53, rel=1e-3)
     assert res.cx == pytest.approx(303.959, abs=1.0)

@@ -12,22 +12,11 @@ import pytest
 
 from calibration.pipeline import calibrate_session, stripe_pixel_at, target_extent_mm
 from scanner.core.conventions import angle_between_rotations_deg
+from scanner.core.planes import plane_errors
 from scanner.core.targets import ChessboardTarget, CircleGridTarget
-from scanner.formats.calibration_file import LightPlane, read_calibration
+from scanner.formats.calibration_file import read_calibration
 from scanner.formats.session import Frame, Session
-
-REPO = Path(__file__).resolve().parents[2]
-
-
-def real_data() -> Path:
-    return Path(os.environ.get("SCANNER_REAL_DATA", REPO.parent / "shared" / "data" / "real"))
-
-
-def _plane_errors(plane: LightPlane, truth: LightPlane) -> tuple[float, float]:
-    n, d = plane.normal, plane.d
-    if n @ truth.normal < 0:
-        n, d = -n, -d
-    return float(np.degrees(np.arccos(np.clip(n @ truth.normal, -1, 1)))), float(d - truth.d)
+from tests.conftest import REPO_ROOT, real_data_dir
 
 
 def test_paper_method_needs_the_concentric_target(tmp_path):
@@ -85,7 +74,7 @@ def test_virtual_cell_default_calibration_matches_truth(modern_cell):
     out, truth = modern_cell
     res = calibrate_session(read_session(out / "calibration"), progress=False)
     cal = res.calibration
-    na, dd = _plane_errors(cal.light_plane, truth.light_plane)
+    na, dd = plane_errors(cal.light_plane, truth.light_plane)
     # Issue #4's targets: normal 0.002 deg, d 0.02 mm, hand-eye 0.008 deg and 0.05 mm.
     # Measured on seed 0: 0.0018 deg, -0.0015 mm; 0.0018 deg, 0.011 mm (robot cost: the
     # robot's misses do not follow its pose here). The normal gets 50 % headroom: it rests on
@@ -135,7 +124,7 @@ def test_scanner_calibrate_command_writes_file_and_report(modern_cell, tmp_path)
 @pytest.mark.slow
 @pytest.mark.real_data
 def test_kuka_full_chain_beats_opencv_with_the_same_intrinsics():
-    root = real_data() / "kuka_1"
+    root = real_data_dir() / "kuka_1"
     if not root.is_dir():
         pytest.skip(f"real data not found at {root} (set SCANNER_REAL_DATA)")
     from calibration.detection.detect import detect_target
@@ -164,13 +153,13 @@ def test_kuka_full_chain_beats_opencv_with_the_same_intrinsics():
 @pytest.mark.slow
 @pytest.mark.real_data
 def test_linelight_plane_agrees_with_the_authors(monkeypatch):
-    root = real_data() / "zhaocongyang_linelight"
+    root = real_data_dir() / "zhaocongyang_linelight"
     if not root.is_dir():
         pytest.skip(f"real data not found at {root} (set SCANNER_REAL_DATA)")
     import importlib.util
 
     spec = importlib.util.spec_from_file_location(
-        "bench_calibration", REPO / "benchmarks" / "bench_calibration.py"
+        "bench_calibration", REPO_ROOT / "benchmarks" / "bench_calibration.py"
     )
     bench = importlib.util.module_from_spec(spec)
     monkeypatch.setitem(sys.modules, "bench_calibration", bench)  # its dataclasses need it

@@ -13,42 +13,8 @@ from scanner.core.config import CONFIG_DIR, ConfigError
 PLANS = sorted((CONFIG_DIR / "plans").glob("*_sweep.toml"))
 SPECS = sorted((CONFIG_DIR / "plans").glob("acceptance_*.toml"))
 
-GOOD = """\
-name = "test plan"
-threshold_mm = 0.2
-
-[[features]]
-name = "a"
-kind = "sphere"
-region = { seed_mm = [0.0, 0.0, 0.0], radius_mm = 20.0 }
-nominal = { diameter_mm = 25.4 }
-
-[[features]]
-name = "b"
-kind = "sphere"
-region = { seed_mm = [100.0, 0.0, 0.0], radius_mm = 20.0 }
-
-[[features]]
-name = "floor"
-kind = "plane"
-region = { box_min_mm = [-50.0, -50.0, -20.0], box_max_mm = [150.0, 50.0, -10.0] }
-threshold_mm = 0
-
-[[measurements]]
-name = "spacing"
-type = "distance"
-features = ["a", "b"]
-nominal = 100.0
-tolerance = 0.1
-
-[[measurements]]
-name = "height"
-type = "distance"
-features = ["a", "floor"]
-nominal = 15.0
-lower = -0.05
-upper = 0.1
-"""
+#: A valid plan: three features (two spheres, a plane) and two measurements between them.
+GOOD = (Path(__file__).parent / "good_plan.toml").read_text(encoding="utf-8")
 
 
 def write(tmp_path: Path, text: str) -> Path:

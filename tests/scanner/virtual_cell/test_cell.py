@@ -40,21 +40,26 @@ def test_standard_targets_load():
     assert isinstance(load_target("circle_grid_7x5"), CircleGridTarget)
 
 
-def test_bad_cell_names_the_key(tmp_path):
+@pytest.mark.parametrize(
+    ("good", "bad", "message"),
+    [
+        ("bit_depth = 8", "bit_depth = 12", r"bit_depth"),
+        ("sigma_mm = 0.3", "sigma_mmm = 0.3", r"sigma_mmm: unknown key"),
+        (
+            "origin_mm = [-40.298, -88.088, 7.671]",
+            "origin_mm = [0, 0, 0]",
+            r"origin_mm: expected a point on the light plane",
+        ),
+        ("frames = 300", "frames = 0", r"sweep: expected frames >= 1"),
+    ],
+)
+def test_bad_cell_names_the_key(tmp_path, good: str, bad: str, message: str):
     text = (load_cell.__globals__["CONFIG_DIR"] / "cells" / "paper.toml").read_text()
-    bad = tmp_path / "bad.toml"
-    bad.write_text(text.replace("bit_depth = 8", "bit_depth = 12"))
-    with pytest.raises(ConfigError, match=r"bit_depth"):
-        load_cell(bad)
-    bad.write_text(text.replace("sigma_mm = 0.3", "sigma_mmm = 0.3"))
-    with pytest.raises(ConfigError, match=r"sigma_mmm: unknown key"):
-        load_cell(bad)
-    bad.write_text(text.replace("origin_mm = [-40.298, -88.088, 7.671]", "origin_mm = [0, 0, 0]"))
-    with pytest.raises(ConfigError, match=r"origin_mm: expected a point on the light plane"):
-        load_cell(bad)
-    bad.write_text(text.replace("frames = 300", "frames = 0"))
-    with pytest.raises(ConfigError, match=r"sweep: expected frames >= 1"):
-        load_cell(bad)
+    assert good in text  # the edit below must change the shipped cell
+    path = tmp_path / "bad.toml"
+    path.write_text(text.replace(good, bad))
+    with pytest.raises(ConfigError, match=message):
+        load_cell(path)
 
 
 def test_chessboard_override_is_found_by_opencv_where_projected():

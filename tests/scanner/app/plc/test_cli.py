@@ -6,7 +6,6 @@ import os
 import re
 import signal
 import subprocess
-import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -16,7 +15,9 @@ import pytest
 from scanner.app.cli import main
 from scanner.app.plc.history import JobHistory
 from scanner.app.plc.registers import ErrorCode, Status
+from scanner.core.subprocesses import start_module
 from tests.conftest import REPO_ROOT
+from tests.scanner.app.plc.job_files import wait_for_job_pid
 from tests.scanner.app.plc.test_service import Plc, done
 
 pytestmark = pytest.mark.timeout(120)
@@ -49,23 +50,12 @@ worker = "{worker}"
 
 class Served:
     def __init__(self, config: Path) -> None:
-        env = {**os.environ, "PYTHONPATH": str(REPO_ROOT)}
-        self.proc = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "scanner.app.cli",
-                "serve",
-                "--config",
-                str(config),
-                "--port",
-                "0",
-            ],
-            cwd=REPO_ROOT,
-            env=env,
+        self.proc = start_module(
+            "scanner.app.cli",
+            ["serve", "--config", str(config), "--port", "0"],
+            REPO_ROOT,
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
-            text=True,
         )
         line = self.proc.stdout.readline() if self.proc.stdout else ""
         m = re.search(r"listening on 127\.0\.0\.1:(\d+)", line)
@@ -111,11 +101,7 @@ def test_sigkill_mid_job_then_restart_marks_the_job_interrupted(tmp_path: Path, 
         plc = Plc(first.port)
         assert plc.write(0, [2, 33, 0, 100]) == 0  # a 10 s scan job
         plc.wait(lambda s: s["bits"] & Status.BUSY)
-        pid_file = tmp_path / "jobs" / "job-000001" / "pid"
-        deadline = time.monotonic() + 10
-        while not pid_file.exists() and time.monotonic() < deadline:
-            time.sleep(0.05)
-        job_pid = int(pid_file.read_text())
+        job_pid = wait_for_job_pid(tmp_path / "jobs", timeout_s=10)
         plc.close()
         first.proc.send_signal(signal.SIGKILL)
         first.proc.wait(10)

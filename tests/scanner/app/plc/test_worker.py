@@ -15,6 +15,7 @@ from scanner.app.plc.registers import ErrorCode, Status
 from scanner.app.plc.worker import WorkerError, load_runner, new_cancel_event, run_in_process
 from tests.scanner.app.plc.conftest import make_config, running_service
 from tests.scanner.app.plc.fakes import RESULTS_UM
+from tests.scanner.app.plc.job_files import wait_for_job_pid
 from tests.scanner.app.plc.test_service import Plc, done
 
 pytestmark = pytest.mark.timeout(60)
@@ -95,11 +96,7 @@ def test_stop_kills_a_job_process_that_outlives_the_grace(tmp_path: Path):
     with running_service(config, None) as svc:  # type: ignore[arg-type]
         plc = Plc(svc.port)
         assert plc.write(0, [1, 1, 0, 996]) == 0  # ignores cancellation for 30 s
-        pid_file = tmp_path / "jobs" / "job-000001" / "pid"
-        deadline = time.monotonic() + 15
-        while not pid_file.exists() and time.monotonic() < deadline:
-            time.sleep(0.05)
-        pid = int(pid_file.read_text())
+        pid = wait_for_job_pid(tmp_path / "jobs", timeout_s=15)
         plc.close()
         t0 = time.monotonic()
         svc.shutdown()
