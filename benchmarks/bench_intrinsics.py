@@ -43,8 +43,8 @@ from calibration.intrinsics import IntrinsicsResult, calibrate_intrinsics
 from scanner.core.camera import CameraModel
 from scanner.core.conventions import make_transform
 from scanner.core.images import load_gray_image
-from scanner.formats.reference_data import ZHANG_MSR_IMAGE_SIZE, zhang_msr_corners
 from scanner.core.targets import ChessboardTarget, CircleGridTarget
+from scanner.formats.reference_data import ZHANG_MSR_IMAGE_SIZE, zhang_msr_corners
 
 log = logging.getLogger("bench_intrinsics")
 
