@@ -12,6 +12,7 @@ import numpy as np
 
 from scanner.core.camera import CameraModel
 from scanner.core.conventions import angle_between_rotations_deg
+from scanner.core.planes import plane_errors
 from scanner.formats.calibration_file import Calibration
 
 __all__ = ["CalibrationErrors", "compare_calibrations", "model_reprojection_error_px"]
@@ -76,10 +77,7 @@ def compare_calibrations(estimate: Calibration, truth: Calibration) -> Calibrati
     model_max, model_rms = model_reprojection_error_px(cam, cam_t)
     angle, d_error = math.nan, math.nan  # a camera-only calibration has no plane to compare
     if estimate.light_plane is not None and truth.light_plane is not None:
-        n, nt = estimate.light_plane.normal, truth.light_plane.normal
-        sign = 1.0 if float(n @ nt) >= 0 else -1.0
-        angle = float(np.degrees(np.arccos(np.clip(abs(float(n @ nt)), -1.0, 1.0))))
-        d_error = float(sign * estimate.light_plane.d - truth.light_plane.d)
+        angle, d_error = plane_errors(estimate.light_plane, truth.light_plane)
     return CalibrationErrors(
         fx_rel_pct=100.0 * (K[0, 0] - Kt[0, 0]) / Kt[0, 0],
         fy_rel_pct=100.0 * (K[1, 1] - Kt[1, 1]) / Kt[1, 1],
