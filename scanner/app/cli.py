@@ -14,6 +14,7 @@ from collections.abc import Sequence
 
 from scanner import __version__
 from scanner.app.commands import (
+    batch,
     calibrate,
     check,
     demo,
@@ -26,7 +27,19 @@ from scanner.app.commands import (
 from scanner.app.commands.judge import ACCEPTANCE, MEASURE
 
 #: The sub-commands in the order ``scanner --help`` lists them.
-COMMANDS = (simulate, target, calibrate, check, scan, MEASURE, ACCEPTANCE, demo, serve, history)
+COMMANDS = (
+    simulate,
+    target,
+    calibrate,
+    check,
+    scan,
+    MEASURE,
+    ACCEPTANCE,
+    batch,
+    demo,
+    serve,
+    history,
+)
 
 EXIT_BAD_INPUT = 2
 EXIT_FAILED = 1
@@ -42,6 +55,12 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for command in COMMANDS:
         command.register(sub)
+    # -v also after the command (`scanner scan ... -v`); SUPPRESS keeps the one given before it.
+    for command_parser in sub.choices.values():
+        command_parser.add_argument(
+            "-v", "--verbose", action="store_true", default=argparse.SUPPRESS,
+            help="log progress details",
+        )  # fmt: skip
     return parser
 
 

@@ -1,7 +1,9 @@
 import subprocess
 import sys
 
-from scanner.app.cli import main
+import pytest
+
+from scanner.app.cli import build_parser, main
 
 
 def test_help_lists_the_contract_commands(capsys):
@@ -32,3 +34,9 @@ def test_bad_input_gives_one_line_on_stderr_and_non_zero_exit(tmp_path):
     assert "Traceback" not in proc.stderr
     assert "missing" in lines[0]
     assert not (tmp_path / "c.json").exists()
+
+
+@pytest.mark.parametrize("argv", [["-v", "serve", "--print-map"], ["serve", "--print-map", "-v"]])
+def test_verbose_goes_before_or_after_the_command(argv):
+    assert build_parser().parse_args(argv).verbose is True
+    assert build_parser().parse_args(["serve", "--print-map"]).verbose is False
