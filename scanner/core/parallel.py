@@ -10,29 +10,39 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import os
+import threading
+import time
 from concurrent.futures import Executor, ProcessPoolExecutor, ThreadPoolExecutor
+
+import cv2
 
 __all__ = ["process_pool"]
 
 log = logging.getLogger(__name__)
 
 
-def _limit_threads() -> None:
-    # Each worker is one of N parallel processes: nested thread pools only oversubscribe.
-    import os
+def _exit_with(parent: int) -> None:
+    """End this worker once ``parent`` is gone (a killed parent runs no clean-up of its own)."""
+    while True:
+        time.sleep(0.5)
+        if os.getppid() != parent:
+            os._exit(3)
 
+
+def _init_worker(parent: int) -> None:
+    # Each worker is one of N parallel processes: nested thread pools only oversubscribe.
     for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")
-    try:
-        import cv2
-
-        cv2.setNumThreads(1)
-    except ImportError:  # pragma: no cover - cv2 is a dependency
-        pass
+    cv2.setNumThreads(1)
+    # The parent's pid is passed in: a worker still starting when the parent dies would
+    # already read its new parent (pid 1) from os.getppid().
+    threading.Thread(target=_exit_with, args=(parent,), name="parent-watch", daemon=True).start()
 
 
 def process_pool(workers: int) -> Executor:
-    """A process pool of ``workers`` spawned processes, each limited to one thread.
+    """A process pool of ``workers`` spawned processes, each limited to one thread, each
+    ending by itself when this process dies (even by SIGKILL).
 
     In a daemonic process (a Dask worker, a host's own daemon pool), which may not start
     children, it is a thread pool of ``workers`` threads instead: the stages' heavy steps
@@ -46,5 +56,6 @@ def process_pool(workers: int) -> Executor:
     return ProcessPoolExecutor(
         max_workers=workers,
         mp_context=multiprocessing.get_context("spawn"),
-        initializer=_limit_threads,
+        initializer=_init_worker,
+        initargs=(os.getpid(),),
     )

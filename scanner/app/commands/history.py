@@ -1,8 +1,14 @@
-"""`scanner history`: the jobs the PLC service ran, newest first."""
+"""`scanner history`: the jobs the PLC service ran, newest first.
+
+The history is opened read-only (SQLite ``mode=ro``): listing it never changes the file, even
+while the service writes to it, and a file that is not a job history is refused (exit 2).
+``--json`` prints the records as a JSON list (the columns of the history, newest first).
+"""
 
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
 from scanner.app.plc.config import load_plc_config
@@ -20,6 +26,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--config", default=None, help="PLC service config (default configs/plc.toml)")
     p.add_argument("--limit", type=int, default=20, help="how many jobs to list (default 20)")
+    p.add_argument(
+        "--json", action="store_true", help="print the jobs as a JSON list of records, newest first"
+    )
     p.set_defaults(func=run)
 
 
@@ -34,8 +43,11 @@ def run(args: argparse.Namespace) -> int:
     db = Path(args.db) if args.db else Path(load_plc_config(args.config).storage.history_db)
     if not db.is_file():
         raise InputError(db, "job history not found")
-    with JobHistory(db) as history:
+    with JobHistory(db, read_only=True) as history:
         records = history.latest(args.limit)
+    if args.json:
+        print(json.dumps([r.to_dict() for r in records], indent=2))
+        return 0
     if not records:
         print("no jobs recorded")
         return 0

@@ -2,6 +2,11 @@
 
 Runs until SIGTERM or Ctrl-C. ``--print-map`` prints the register map and error codes and
 exits. ``--port 0`` picks a free port; the line ``listening on HOST:PORT`` says which.
+
+Bad input is refused before the service listens, with one line and exit 2: a ``--host`` that
+is not an IP address or host name, a ``[jobs] runner`` whose module does not exist (the line
+names the config file), a ``storage.history_db`` that is not a job history or cannot be
+created (the line names that file).
 """
 
 from __future__ import annotations
@@ -9,10 +14,14 @@ from __future__ import annotations
 import argparse
 import asyncio
 import sys
+from pathlib import Path
 
-from scanner.app.plc.config import load_plc_config
+from scanner.app.plc.config import check_host, load_plc_config
 from scanner.app.plc.registers import format_register_map
 from scanner.app.plc.service import serve
+from scanner.app.plc.worker import check_runner
+from scanner.core.config import resolve_config
+from scanner.core.fileio import InputError
 
 SUMMARY = "run the Modbus TCP service for a PLC"
 DESCRIPTION = "Run the Modbus TCP service for a PLC until SIGTERM or Ctrl-C."
@@ -36,7 +45,14 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if args.port is not None and not 0 <= args.port <= 65535:
         raise ValueError(f"--port: expected 0..65535, got {args.port}")
-    config = load_plc_config(args.config)
+    if args.host is not None:
+        check_host(args.host, "--host")
+    config_path = resolve_config(Path(args.config) if args.config else "plc")
+    config = load_plc_config(config_path)
+    try:
+        check_runner(config.jobs.runner)
+    except ValueError as exc:
+        raise InputError(config_path, str(exc)) from None
 
     def listening(host: str, port: int) -> None:
         print(f"scanner serve: listening on {host}:{port}", flush=True)

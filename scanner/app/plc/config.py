@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import ipaddress
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -25,8 +26,37 @@ __all__ = [
     "SourceConfig",
     "StorageConfig",
     "WatchdogConfig",
+    "check_host",
     "load_plc_config",
 ]
+
+#: A host name as RFC 1123 allows it: dot-separated labels of letters, digits and hyphens.
+_HOST_NAME = re.compile(r"^(?!-)[A-Za-z0-9-]{1,63}(?<!-)(\.(?!-)[A-Za-z0-9-]{1,63}(?<!-))*\.?$")
+
+
+def check_host(host: str, option: str = "host") -> str:
+    """``host`` if it is an IP address or a well-formed host name, else ``ValueError``.
+
+    Only the spelling is checked (no name lookup): a name made of digits and dots only
+    (``999.1.1.1``) must be an IP address, as RFC 1123 rules out all-numeric top-level labels.
+
+    Raises
+    ------
+    ValueError
+        ``"<option>: expected an IP address or a host name, got '<host>'"``.
+    """
+    try:
+        ipaddress.ip_address(host)
+        return host
+    except ValueError:
+        pass
+    labels = host.rstrip(".").split(".")
+    if _HOST_NAME.match(host) and len(host) <= 253 and not labels[-1].isdigit():
+        return host
+    raise ValueError(
+        f"{option}: expected an IP address or a host name, got {host!r}"
+        + (" (not an IP address)" if re.fullmatch(r"[0-9.]+", host) else "")
+    )
 
 
 @dataclass(frozen=True)
@@ -44,6 +74,7 @@ class ServerConfig:
     idle_timeout_s: float = 60.0
 
     def __post_init__(self) -> None:
+        check_host(self.host)
         if not 0 <= self.port <= 65535:
             raise ValueError(f"port: expected 0..65535, got {self.port}")
         if self.max_connections < 1:

@@ -5,6 +5,11 @@ when it ends (``done``, ``error``) with its figures, error code and text and the
 report and artefacts. Commits are synchronous (``synchronous=FULL``), so a record survives a
 killed process or a power cut. On start, :meth:`JobHistory.mark_interrupted` turns any record
 still ``running`` (the service died under it) into ``interrupted``: none is left running.
+
+``JobHistory(path, read_only=True)`` (what ``scanner history`` uses) opens the file with the
+SQLite URI ``mode=ro``: it never creates, converts or writes anything, and it refuses a file
+that is not a job history. Either way a file that is not a job history, or one that cannot be
+created or opened, raises :class:`~scanner.core.fileio.InputError` naming the file.
 """
 
 from __future__ import annotations
@@ -16,8 +21,11 @@ import os
 import sqlite3
 import threading
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
+
+from scanner.core.fileio import InputError
 
 __all__ = ["JOB_STATES", "JobHistory", "JobRecord"]
 
@@ -53,6 +61,7 @@ _COLUMNS = (
     "result1_um, result2_um, result3_um, error_code, error_text, session_path, report_path, "
     "artefacts"
 )
+_COLUMN_NAMES = frozenset(c.strip() for c in _COLUMNS.split(","))
 
 
 def _now() -> str:
@@ -88,6 +97,12 @@ class JobRecord:
         values[16] = tuple(json.loads(values[16] or "[]"))
         return cls(*values)
 
+    def to_dict(self) -> dict[str, Any]:
+        """The record as a JSON-ready dictionary (``artefacts`` a list)."""
+        data = asdict(self)
+        data["artefacts"] = list(self.artefacts)
+        return data
+
 
 class JobHistory:
     """The SQLite job history (one file, WAL mode, safe to use from several threads).
@@ -96,19 +111,102 @@ class JobHistory:
     ----------
     path : path-like
         The database file; its folder is created. ``":memory:"`` for a throw-away history.
+    read_only : bool
+        Open an existing history for reading only (SQLite ``mode=ro``): nothing is created,
+        converted (WAL) or written, and the write methods fail.
+
+    Raises
+    ------
+    InputError
+        The file is not a job history (not an SQLite database, or a database without the
+        ``jobs`` table), or it cannot be created or opened (``read_only``: it does not exist).
     """
 
-    def __init__(self, path: str | os.PathLike[str]) -> None:
+    def __init__(self, path: str | os.PathLike[str], *, read_only: bool = False) -> None:
         self.path = str(path)
-        if self.path != ":memory:":
-            Path(self.path).parent.mkdir(parents=True, exist_ok=True)
+        self.read_only = read_only
         self._lock = threading.Lock()
-        self._db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
-        with self._lock:
-            self._db.execute("PRAGMA journal_mode=WAL")
-            self._db.execute("PRAGMA synchronous=FULL")
-            self._db.execute("PRAGMA busy_timeout=5000")
-            self._db.executescript(_SCHEMA)
+        self._db = self._open_read_only() if read_only else self._open_read_write()
+
+    def _open_read_only(self) -> sqlite3.Connection:
+        path = Path(self.path)
+        if not path.is_file():
+            raise InputError(path, "job history not found")
+        uri = f"{path.absolute().as_uri()}?mode=ro"
+        try:
+            db = sqlite3.connect(uri, uri=True, check_same_thread=False, isolation_level=None)
+        except sqlite3.Error as exc:
+            raise InputError(path, f"cannot open the job history ({exc})") from None
+        try:
+            db.execute("PRAGMA busy_timeout=5000")
+            self._check_schema(db, require_jobs=True)
+        except BaseException:
+            db.close()
+            raise
+        return db
+
+    def _open_read_write(self) -> sqlite3.Connection:
+        memory = self.path == ":memory:"
+        path = Path(self.path)
+        try:
+            if not memory:
+                path.parent.mkdir(parents=True, exist_ok=True)
+            db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
+        except OSError as exc:
+            blocker = next((a for a in path.parents if a.exists() and not a.is_dir()), None)
+            if blocker is not None:
+                reason = f"its folder cannot be created: {blocker} is a file, not a folder"
+            else:
+                where = f": {exc.filename}" if exc.filename else ""
+                reason = f"{exc.strerror or type(exc).__name__}{where}"
+            raise InputError(path, f"cannot create the job history ({reason})") from None
+        except sqlite3.Error as exc:
+            raise InputError(path, f"cannot open the job history for writing ({exc})") from None
+        try:
+            self._check_schema(db, require_jobs=False)
+            db.execute("PRAGMA journal_mode=WAL")
+            db.execute("PRAGMA synchronous=FULL")
+            db.execute("PRAGMA busy_timeout=5000")
+            db.executescript(_SCHEMA)
+        except sqlite3.Error as exc:
+            db.close()
+            raise InputError(path, f"cannot open the job history for writing ({exc})") from None
+        except BaseException:
+            db.close()
+            raise
+        return db
+
+    def _check_schema(self, db: sqlite3.Connection, *, require_jobs: bool) -> None:
+        """Refuse a file that is not a job history.
+
+        A database without any table is accepted when ``require_jobs`` is false (a new history
+        gets its table); one with tables but no ``jobs`` table of the right columns never is.
+        """
+        try:
+            tables = sorted(
+                r[0] for r in db.execute("SELECT name FROM sqlite_master WHERE type='table'")
+            )
+        except sqlite3.DatabaseError as exc:
+            if isinstance(exc, sqlite3.OperationalError):  # locked, unreadable, ...
+                raise InputError(self.path, f"cannot read the job history ({exc})") from None
+            raise InputError(
+                self.path, f"not a job history (not an SQLite database: {exc})"
+            ) from None
+        tables = [t for t in tables if not t.startswith("sqlite_")]
+        if "jobs" not in tables:
+            if not tables and not require_jobs:
+                return
+            has = f"its tables: {', '.join(tables)}" if tables else "it has no tables"
+            raise InputError(
+                self.path, f"not a job history (an SQLite database without a 'jobs' table; {has})"
+            )
+        columns = {r[1] for r in db.execute("PRAGMA table_info(jobs)")}
+        missing = sorted(_COLUMN_NAMES - columns)
+        if missing:
+            raise InputError(
+                self.path,
+                f"not a job history (its 'jobs' table lacks the columns {', '.join(missing)})",
+            )
 
     def close(self) -> None:
         with self._lock:

@@ -7,9 +7,16 @@ correctly. The bank is called on the event loop thread only, so a request sees t
 as one consistent snapshot.
 
 Guards (all from ``[server]`` in ``configs/plc.toml``): clients whose address is not allowed
-and connections beyond ``max_connections`` are closed at once; a connection silent for
-``idle_timeout_s`` is closed; bytes that are not Modbus TCP (protocol id not 0, length over
-254, garbage) close the connection after the frames before them are answered.
+and connections beyond ``max_connections`` are closed at once; a connection without a complete
+request for ``idle_timeout_s`` is closed (the bytes of a partial frame do not count, so a client
+trickling a frame byte by byte cannot hold a connection); bytes that are not Modbus TCP
+(protocol id not 0, length over 254, garbage) close the connection after the frames before them
+are answered.
+
+A connection counts against ``max_connections`` until its peer has gone, not until the event
+loop has read the end of its stream: when a new client would exceed the limit, connections
+whose peer has already closed (or reset) are dropped first. Many clients connecting and closing
+quickly therefore never lock a new one out.
 """
 
 from __future__ import annotations
@@ -17,6 +24,8 @@ from __future__ import annotations
 import asyncio
 import ipaddress
 import logging
+import select
+import socket
 from collections.abc import Sequence
 from typing import cast
 
@@ -58,6 +67,8 @@ class _Connection(asyncio.Protocol):
             transport.abort()
             return
         if len(self.server.connections) >= self.server.max_connections:
+            self.server.drop_gone_connections()
+        if len(self.server.connections) >= self.server.max_connections:
             log.warning(
                 "refused %s: already %d connections (max_connections)",
                 self.peer,
@@ -75,13 +86,13 @@ class _Connection(asyncio.Protocol):
         if self._idle is not None:
             self._idle.cancel()
         if self.accepted:
+            self.accepted = False
             self.server.connections.discard(self)
             log.info("connection from %s closed", self.peer)
 
     def data_received(self, data: bytes) -> None:
         if self.transport is None or self.transport.is_closing():
             return
-        self._arm_idle()
         out: list[bytes] = []
         try:
             for frame in self.frames.feed(data):
@@ -91,7 +102,8 @@ class _Connection(asyncio.Protocol):
             self.transport.write(b"".join(out))
             self.transport.close()
             return
-        if out:
+        if out:  # only a complete request re-arms the idle timer, never a partial frame
+            self._arm_idle()
             self.transport.write(b"".join(out))
 
     def pause_writing(self) -> None:  # a client that does not read its answers
@@ -124,6 +136,54 @@ class _Connection(asyncio.Protocol):
     def close(self) -> None:
         if self.transport is not None and not self.transport.is_closing():
             self.transport.close()
+
+    def peer_gone(self) -> bool:
+        """Whether the peer has closed or reset the connection (its end of stream may still be
+        unread by the event loop)."""
+        if self.transport is None or self.transport.is_closing():
+            return True
+        sock = self.transport.get_extra_info("socket")
+        if sock is None:
+            return False
+        try:
+            fd = sock.fileno()
+        except OSError:
+            return True
+        if fd < 0:
+            return True
+        rdhup = getattr(select, "POLLRDHUP", 0)
+        if hasattr(select, "poll"):
+            poller = select.poll()
+            poller.register(fd, select.POLLIN | rdhup)
+            for _, events in poller.poll(0):
+                if events & (rdhup | select.POLLHUP | select.POLLERR | select.POLLNVAL):
+                    return True
+            if rdhup:
+                return False
+        try:  # no POLLRDHUP: an end of stream with nothing before it reads as b"" when peeked
+            peek = socket.fromfd(fd, sock.family, sock.type)  # a duplicate: closing it is safe
+        except OSError:
+            return True
+        try:
+            peek.setblocking(False)
+            return peek.recv(1, socket.MSG_PEEK) == b""
+        except (BlockingIOError, InterruptedError):
+            return False
+        except OSError:
+            return True
+        finally:
+            peek.close()
+
+    def drop(self) -> None:
+        """Close at once and stop counting this connection (its peer has gone)."""
+        if self.accepted:
+            self.accepted = False
+            self.server.connections.discard(self)
+            log.info("connection from %s closed (peer gone)", self.peer)
+        if self._idle is not None:
+            self._idle.cancel()
+        if self.transport is not None:
+            self.transport.abort()
 
 
 class ModbusTcpServer:
@@ -179,12 +239,38 @@ class ModbusTcpServer:
             address = address.ipv4_mapped
         return any(address in net for net in self.allowed)
 
+    def drop_gone_connections(self) -> int:
+        """Drop the connections whose peer has already closed; return how many."""
+        gone = [c for c in self.connections if c.peer_gone()]
+        for conn in gone:
+            conn.drop()
+        return len(gone)
+
     async def start(self) -> None:
-        """Listen; :attr:`port` is the port actually bound."""
+        """Listen; :attr:`port` is the port actually bound.
+
+        Raises
+        ------
+        ValueError
+            :attr:`host` is neither an IP address nor a name that resolves.
+        OSError
+            Listening failed (address in use, not an address of this machine, ...); the
+            message names the address.
+        """
         loop = asyncio.get_running_loop()
-        self._server = await loop.create_server(
-            lambda: _Connection(self), self.host, self.port, reuse_address=True
-        )
+        try:
+            self._server = await loop.create_server(
+                lambda: _Connection(self), self.host, self.port, reuse_address=True
+            )
+        except socket.gaierror as exc:
+            raise ValueError(
+                f"host: expected an IP address or a resolvable host name, got {self.host!r} "
+                f"({exc.strerror or exc})"
+            ) from None
+        except OSError as exc:
+            raise OSError(
+                f"cannot listen on {self.host}:{self.port} ({exc.strerror or exc})"
+            ) from None
         self.port = self._server.sockets[0].getsockname()[1]
         log.info("Modbus TCP server listening on %s:%d", self.host, self.port)
 

@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from scanner.app.plc.config import PlcConfig
+from scanner.app.plc.config import PlcConfig, check_host
 from scanner.app.plc.history import JobHistory, JobRecord
 from scanner.app.plc.jobs import JobCancelled, JobContext, JobError, JobOutcome, JobRunner
 from scanner.app.plc.modbus import ExceptionCode, ModbusException
@@ -61,12 +61,16 @@ from scanner.app.plc.registers import (
 from scanner.app.plc.server import ModbusTcpServer
 from scanner.app.plc.worker import (
     WorkerError,
+    check_runner,
+    child_pids,
     kill_job_processes,
+    kill_new_children,
     load_runner,
     new_cancel_event,
     run_in_process,
     run_in_thread,
 )
+from scanner.core.fileio import InputError
 
 __all__ = ["PlcService", "load_runner", "serve"]
 
@@ -127,6 +131,9 @@ class PlcService:
         self._tasks: list[asyncio.Task[Any]] = []
         self._job_tasks: set[asyncio.Task[Any]] = set()
         self._stopping = False
+        #: Child processes that existed when the service started (not the jobs' pools);
+        #: ``None`` until :meth:`start`.
+        self._children_before: set[int] | None = None
         self._set_words(Reg.PROBE, int32_to_words(WORD_ORDER_PROBE))
         self._set_results((None, None, None))
         self._restore()
@@ -406,6 +413,7 @@ class PlcService:
 
     def start(self, watchdog_period_s: float = 0.1) -> None:
         """Start the heartbeat and the watchdog (call on the event loop)."""
+        self._children_before = child_pids()
         loop = asyncio.get_running_loop()
         self._tasks = [
             loop.create_task(self._heartbeat()),
@@ -426,6 +434,10 @@ class PlcService:
                 log.warning("job %d did not stop within %.1f s", job.ctx.job_id, grace)
                 self._finish(job, None, ErrorCode.INTERRUPTED, ErrorCode.INTERRUPTED.text)
         kill_job_processes()
+        if self.config.jobs.worker == "thread" and self._children_before is not None:
+            # Worker pools a job on a thread started (and left running, or still waits for):
+            # otherwise the interpreter would wait for their tasks before it could exit.
+            kill_new_children(self._children_before)
         for task in [*self._tasks, *self._job_tasks]:
             task.cancel()
         for task in [*self._tasks, *self._job_tasks]:
@@ -456,16 +468,35 @@ async def serve(
         Set it to stop the service (tests); signals set it too.
     on_listening : callable, optional
         Called with the address and the port actually bound (port 0 picks one).
+
+    Raises
+    ------
+    ValueError
+        Before listening: ``host`` is not an IP address or host name (or does not resolve),
+        ``[jobs] runner`` names no importable module, ``storage.history_db`` is not a job
+        history or cannot be created (:class:`~scanner.core.fileio.InputError`).
+    OSError
+        The address cannot be listened on.
     """
     stop = stop or asyncio.Event()
-    if runner is None and config.jobs.worker == "thread":
-        runner = load_runner(config.jobs.runner, config)
-    history = JobHistory(config.storage.history_db)
-    service = PlcService(config, runner, history)
+    host = check_host(host, "host") if host is not None else config.server.host
+    if runner is None:
+        check_runner(config.jobs.runner)
+        if config.jobs.worker == "thread":
+            runner = load_runner(config.jobs.runner, config)
+    try:
+        history = JobHistory(config.storage.history_db)
+    except InputError as exc:
+        raise InputError(exc.path, f"storage.history_db: {exc.reason}") from None
+    try:
+        service = PlcService(config, runner, history)
+    except BaseException:
+        history.close()
+        raise
     srv = config.server
     server = ModbusTcpServer(
         service,
-        host=host or srv.host,
+        host=host,
         port=srv.port if port is None else port,
         allowed=srv.networks(),
         max_connections=srv.max_connections,

@@ -12,13 +12,20 @@ with injected fake runners, and it is cheaper for jobs that spend their time in 
 releases the GIL. Cancellation is then cooperative only.
 
 The child builds its runner from ``[jobs] runner`` (a name, so it can be imported there),
-watches its parent and exits if the service dies (no orphaned jobs after a SIGKILL), and
-sends back one message: the outcome, or the job error, or the error of a bug.
+watches its parent and exits if the service dies, killing its process group with it (so neither
+the job nor the worker pools its stages started outlive a SIGKILL of the service), and sends
+back one message: the outcome, or the job error, or the error of a bug.
+
+With ``worker = "thread"`` the pools are children of the service itself:
+:func:`kill_new_children` ends those still running when the service stops. After a SIGKILL of
+the service nothing in it runs any more; the pool workers must then notice by themselves (see
+docs/PLC.md).
 """
 
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import logging
 import multiprocessing
 import os
@@ -42,7 +49,9 @@ from scanner.app.plc.registers import ErrorCode
 
 __all__ = [
     "WorkerError",
+    "check_runner",
     "kill_job_processes",
+    "kill_new_children",
     "load_runner",
     "new_cancel_event",
     "run_in_process",
@@ -69,6 +78,23 @@ def kill_job_processes() -> int:
     return len(procs)
 
 
+def kill_new_children(before: set[int]) -> int:
+    """Kill the child processes of this process started by :mod:`multiprocessing` (the worker
+    pools of jobs on threads) whose pid is not in ``before``; return how many there were."""
+    procs = [p for p in multiprocessing.active_children() if p.pid not in before]
+    for proc in procs:
+        log.warning("killing job worker process %s (pid %s)", proc.name, proc.pid)
+        proc.kill()
+    for proc in procs:
+        proc.join(5.0)
+    return len(procs)
+
+
+def child_pids() -> set[int]:
+    """The pids of this process's :mod:`multiprocessing` children alive now."""
+    return {p.pid for p in multiprocessing.active_children() if p.pid is not None}
+
+
 def _kill_group(proc: multiprocessing.process.BaseProcess) -> None:
     """Kill a job process and the pool workers it started (its process group)."""
     try:
@@ -81,15 +107,62 @@ class WorkerError(Exception):
     """A job raised an unexpected exception in its worker process; ``str`` says which."""
 
 
-def load_runner(spec: str, config: PlcConfig) -> JobRunner:
-    """Build the job runner ``spec``: ``"pipeline"`` (the real stages) or a plug-in's
-    ``"package.module:factory"``, called with the config."""
-    if spec == BUILTIN_RUNNER:
-        return PipelineJobs(config)
+def _split_runner(spec: str) -> tuple[str, str]:
     module_name, sep, attr = spec.partition(":")
     if not sep or not module_name or not attr:
-        raise ValueError(f"expected a runner as 'package.module:factory', got {spec!r}")
-    factory = getattr(importlib.import_module(module_name), attr)
+        raise ValueError(
+            f"[jobs] runner: expected {BUILTIN_RUNNER!r} or 'package.module:factory', got {spec!r}"
+        )
+    return module_name, attr
+
+
+def check_runner(spec: str) -> None:
+    """Refuse a runner ``spec`` whose module cannot be found, without importing it.
+
+    The service calls it when it starts, so a misspelt ``[jobs] runner`` is one line at start
+    rather than an internal error at the first job (a job process imports the module itself).
+
+    Raises
+    ------
+    ValueError
+        ``"[jobs] runner: expected an importable module, got ..."``.
+    """
+    if spec == BUILTIN_RUNNER:
+        return
+    module_name, _ = _split_runner(spec)
+    try:
+        found = importlib.util.find_spec(module_name) is not None
+        reason = f"no module named {module_name!r}"
+    except (ImportError, ValueError) as exc:  # a parent package is missing or broken
+        found, reason = False, str(exc)
+    if not found:
+        raise ValueError(f"[jobs] runner: expected an importable module, got {spec!r} ({reason})")
+
+
+def load_runner(spec: str, config: PlcConfig) -> JobRunner:
+    """Build the job runner ``spec``: ``"pipeline"`` (the real stages) or a plug-in's
+    ``"package.module:factory"``, called with the config.
+
+    Raises
+    ------
+    ValueError
+        The module cannot be imported or does not define the factory.
+    """
+    if spec == BUILTIN_RUNNER:
+        return PipelineJobs(config)
+    module_name, attr = _split_runner(spec)
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        raise ValueError(
+            f"[jobs] runner: expected an importable module, got {spec!r} ({exc})"
+        ) from None
+    factory = getattr(module, attr, None)
+    if not callable(factory):
+        raise ValueError(
+            f"[jobs] runner: expected {module_name!r} to define the factory {attr!r}, got "
+            f"{'nothing' if factory is None else type(factory).__name__} by that name"
+        )
     return factory(config)
 
 
@@ -109,6 +182,10 @@ def _exit_with_parent(parent: int) -> None:
         while True:
             time.sleep(0.5)
             if os.getppid() != parent:
+                # The service died (SIGKILL): take the job's worker pools with us. The job is
+                # the leader of its own process group (set in _child_main), they are in it.
+                if hasattr(os, "killpg") and os.getpgrp() == os.getpid():
+                    os.killpg(os.getpgrp(), signal.SIGKILL)
                 os._exit(3)
 
     threading.Thread(target=watch, name="parent-watch", daemon=True).start()
