@@ -110,3 +110,17 @@ def test_the_cloud_holds_trusted_points_unless_asked(sweep, tmp_path, capsys):
     grazing = int(np.count_nonzero(every & 32))
     assert "left out as flagged (--keep-flagged keeps them): " in printed
     assert f"{grazing} grazing" in printed
+
+
+def test_a_failed_scan_leaves_no_work_folder(tmp_path, capsys):
+    session, cal, _ = write_table_step_sweep(tmp_path / "s", x_mm=np.linspace(-20, 20, 5))
+    write_calibration(tmp_path / "cal.json", cal)
+    images = sorted((session / "images").glob("*.png"))
+    images[2].write_bytes(b"\x89PNG\r\n\x1a\n" + images[2].read_bytes()[8:40])  # truncated
+    out = tmp_path / "out" / "cloud.ply"
+    code = main(["scan", str(session), "--calibration", str(tmp_path / "cal.json"),
+                 "--out", str(out), "--quiet"])  # fmt: skip
+    assert code == 2, capsys.readouterr().err
+    assert images[2].name in capsys.readouterr().err
+    assert not out.exists()
+    assert not (out.parent / ".scanner-work").exists()
