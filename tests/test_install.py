@@ -24,9 +24,11 @@ def test_an_installed_copy_finds_the_shipped_configs(tmp_path: Path):
     shutil.copytree(
         REPO_ROOT, source, ignore=shutil.ignore_patterns(".venv", ".git", "reports", "tests")
     )
+    # --ignore-installed: never touch the environment running this test (pip would otherwise
+    # uninstall its editable install of the same name first).
     subprocess.run(
-        [sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--prefix", str(venv),
-         str(source)],
+        [sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--ignore-installed",
+         "--prefix", str(venv), str(source)],
         check=True, cwd=tmp_path, capture_output=True, text=True,
     )  # fmt: skip
     site = subprocess.run(
@@ -49,3 +51,6 @@ def test_an_installed_copy_finds_the_shipped_configs(tmp_path: Path):
     assert REPO_ROOT not in config_dir.parents, "found the checkout, not the installed copy"
     assert config_dir == venv / "share" / "robot-line-scanner" / "configs"
     assert Path(out[1]).is_file() and Path(out[2]).name == "plc.toml"
+    # This environment still has its own install.
+    check = [sys.executable, "-c", "import scanner.app.cli"]
+    assert subprocess.run(check, cwd=tmp_path, check=False).returncode == 0

@@ -132,7 +132,7 @@ def test_a_camera_only_calibration_reads_and_writes(tmp_path, plane):
     (tmp_path / "c.json").write_text(json.dumps(obj))
     calib = read_calibration(tmp_path / "c.json")
     assert calib.light_plane is None
-    with pytest.raises(InputError, match="c.json: a camera-only calibration"):
+    with pytest.raises(InputError, match=r"c\.json: a camera-only calibration"):
         calib.require_light_plane(tmp_path / "c.json", "scanning")
     write_calibration(tmp_path / "d.json", calib)
     assert json.loads((tmp_path / "d.json").read_text())["light_plane"] is None
