@@ -50,7 +50,7 @@ from scanner.core.fileio import (
     commit_together,
     write_json_atomic,
 )
-from scanner.core.tolerance import STATUS_ERROR, STATUS_FAIL, ToleranceRow
+from scanner.core.tolerance import STATUS_ERROR, STATUS_FAIL, ToleranceRow, spreadsheet_safe
 from scanner.formats.calibration_file import read_calibration
 from scanner.formats.layout import JobLayout
 from scanner.scanning.pipeline import ScanOptions
@@ -617,7 +617,8 @@ def _rows_csv(outcomes: Sequence[SessionOutcome]) -> str:
     writer.writerow(RESULT_COLUMNS)
     for o in outcomes:
         for r in o.rows:
-            writer.writerow([o.name, *(getattr(r, c) for c in RESULT_COLUMNS[1:])])
+            cells = [o.name, *(getattr(r, c) for c in RESULT_COLUMNS[1:])]
+            writer.writerow([spreadsheet_safe(c) for c in cells])
     return buf.getvalue()
 
 

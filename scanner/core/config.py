@@ -64,10 +64,14 @@ class ConfigError(InputError):
 
 
 def resolve_config(name_or_path: str | os.PathLike[str], subdir: str = "") -> Path:
-    """A path as given if it exists, else ``<subdir>/<name>.toml`` in the first of :func:`config_dirs`."""
+    """A path as given if it exists; a bare name (no folder) is looked up as
+    ``<subdir>/<name>.toml`` in :func:`config_dirs`."""
     p = Path(name_or_path)
     if p.is_file():
         return p
+    if len(p.parts) > 1:
+        # A path with a folder is meant as a path: never replaced by a shipped namesake.
+        raise InputError(p, "config file not found")
     name = p.name if p.suffix == ".toml" else f"{p.name}.toml"
     candidates = [folder / subdir / name for folder in config_dirs()]
     for candidate in candidates:

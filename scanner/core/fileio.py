@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import shutil
 import tempfile
@@ -18,6 +19,7 @@ __all__ = [
     "atomic_output",
     "check_outputs_apart",
     "commit_together",
+    "json_int",
     "read_json_object",
     "write_json_atomic",
     "write_text_atomic",
@@ -123,8 +125,16 @@ def commit_together() -> Iterator[Callable[[Path], Path]]:
     """
     staging: list[Path] = []
 
+    finals: set[Path] = set()
+
     def staged(final: Path) -> Path:
         final = Path(final)
+        key = final.resolve()
+        if key in finals:
+            raise InputError(final, "named for two outputs of one run; give each its own name")
+        if final.is_dir():
+            raise InputError(final, "is a folder; expected a file name to write")
+        finals.add(key)
         final.parent.mkdir(parents=True, exist_ok=True)
         folder = Path(tempfile.mkdtemp(prefix=f".{final.name}.", dir=final.parent))
         staging.append(folder)
@@ -155,8 +165,9 @@ def _same_file(a: Path, b: Path) -> bool:
 
 
 def check_outputs_apart(inputs: Iterable[str | os.PathLike[str]], outputs: Iterable[Path]) -> None:
-    """Refuse an output that is, or would replace, an input: same path, same file, or a file
-    inside an input folder (a session).
+    """Refuse an output that is, or would replace, an input (same path, same file, or a file
+    inside an input folder such as a session), two outputs with one name, and an output
+    where a folder stands.
 
     Raises
     ------
@@ -170,6 +181,15 @@ def check_outputs_apart(inputs: Iterable[str | os.PathLike[str]], outputs: Itera
             inside = i.is_dir() and (o == i or i in o.parents)
             if o == i or inside or _same_file(o, i):
                 raise InputError(out, f"would overwrite the input {i}; write it elsewhere")
+    # Outputs among themselves, and outputs a folder stands in for: refused before the work.
+    seen: set[Path] = set()
+    for out in outputs:
+        o = Path(out).resolve()
+        if o in seen:
+            raise InputError(out, "named for two outputs of one run; give each its own name")
+        if o.is_dir():
+            raise InputError(out, "is a folder; expected a file name to write")
+        seen.add(o)
 
 
 def read_json_object(
@@ -194,3 +214,13 @@ def read_json_object(
     if not isinstance(obj, dict):
         raise InputError(p, f"expected a JSON object, got {type(obj).__name__}")
     return obj
+
+
+def json_int(value: Any, where: str) -> int:
+    """A whole number as JSON gives it (``1280``, or ``1280.0``), never a bool, a string or a
+    fraction; ``ValueError`` naming ``where`` otherwise."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise ValueError(f"{where}: expected a whole number, got {value!r}")
+    if isinstance(value, float) and not (math.isfinite(value) and value.is_integer()):
+        raise ValueError(f"{where}: expected a whole number, got {value!r}")
+    return int(value)

@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanner.core.conventions import check_transform
-from scanner.core.fileio import InputError, read_json_object, write_json_atomic
+from scanner.core.fileio import InputError, json_int, read_json_object, write_json_atomic
 
 __all__ = [
     "FORMAT",
@@ -177,6 +177,11 @@ class Calibration:
             raise ValueError(f"camera.K: expected a finite 3x3 matrix, got shape {self.K.shape}")
         if self.K[0, 0] <= 0 or self.K[1, 1] <= 0 or not np.allclose(self.K[2], [0, 0, 1]):
             raise ValueError("camera.K: expected fx, fy > 0 and last row [0, 0, 1]")
+        if not (abs(self.K[0, 2]) <= MAX_IMAGE_PX and abs(self.K[1, 2]) <= MAX_IMAGE_PX):
+            raise ValueError(
+                f"camera.K: expected the principal point within ±{MAX_IMAGE_PX} px, got "
+                f"{self.K[0, 2]:g}, {self.K[1, 2]:g}"
+            )
         if not (self.K[0, 0] <= MAX_FOCAL_PX and self.K[1, 1] <= MAX_FOCAL_PX):
             raise ValueError(
                 f"camera.K: expected fx, fy <= {MAX_FOCAL_PX:g} px, got {self.K[0, 0]:g}, "
@@ -266,8 +271,8 @@ def read_calibration(path: str | os.PathLike[str]) -> Calibration:
         plane = obj.get("light_plane")
         origin = obj.get("laser_origin_cam")
         return Calibration(
-            width=int(cam["width"]),
-            height=int(cam["height"]),
+            width=json_int(cam["width"], "camera.width"),
+            height=json_int(cam["height"], "camera.height"),
             K=np.asarray(cam["K"], dtype=np.float64),
             dist=np.asarray(cam["dist"], dtype=np.float64),
             light_plane=None
@@ -279,5 +284,5 @@ def read_calibration(path: str | os.PathLike[str]) -> Calibration:
         )
     except KeyError as exc:
         raise InputError(p, f"missing key {exc.args[0]!r}") from None
-    except (TypeError, ValueError) as exc:
+    except (TypeError, ValueError, OverflowError) as exc:
         raise InputError(p, str(exc)) from None

@@ -34,7 +34,7 @@ from scanner.core.conventions import (
     rotation_columns,
     transform_to_pose,
 )
-from scanner.core.fileio import InputError, read_json_object, write_text_atomic
+from scanner.core.fileio import InputError, json_int, read_json_object, write_text_atomic
 from scanner.core.images import image_size, load_gray_image, load_laser_images
 from scanner.core.targets import TargetSpec, parse_target, target_to_json
 
@@ -169,7 +169,8 @@ def read_session(root: str | os.PathLike[str], check_images: bool = True) -> Ses
     if not isinstance(camera, dict):
         raise _fail(meta_path, "camera: expected an object {width, height}")
     try:
-        width, height = int(camera["width"]), int(camera["height"])
+        width = json_int(camera["width"], "camera.width")
+        height = json_int(camera["height"], "camera.height")
     except (KeyError, TypeError, ValueError):
         raise _fail(
             meta_path, f"camera: expected integer width and height, got {camera!r}"
@@ -259,7 +260,7 @@ def _read_frames(
     for line, row in enumerate(rows[1:], start=2):
         if not row or all(not c.strip() for c in row):
             continue
-        if len(row) > len(header):
+        if len(row) > len(header) and any(c.strip() for c in row[len(header) :]):
             raise _fail(
                 path,
                 f"row {line}: expected at most {len(header)} cells (the header's), got "

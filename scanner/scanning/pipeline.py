@@ -131,6 +131,9 @@ class ScanOptions:
             )
         if self.voxel_mm is not None and self.voxel_mm < 0:
             raise ValueError(f"voxel_mm: expected >= 0, got {self.voxel_mm}")
+        if self.voxel_mm and self.keep_flagged:
+            # A voxel averages its points' attributes: flag bits would mix into wrong ones.
+            raise ValueError("voxel_mm with keep_flagged: a voxel cannot keep its points' flags")
         if self.max_incidence_deg is not None and not 0 < self.max_incidence_deg <= 90:
             raise ValueError(
                 f"max_incidence_deg: expected 0 < angle <= 90, got {self.max_incidence_deg}"
@@ -619,6 +622,7 @@ def scan_session(
                 points, attributes, frame_pos, poses @ calibration.flange_from_cam, options
             )
         removed: dict[str, int] = {}
+        n_stripe_points = len(points)
         if not options.keep_flagged:
             points, attributes, removed = _drop_flagged(points, attributes)
         cloud = build_cloud(points, attributes)
@@ -631,7 +635,13 @@ def scan_session(
         )
         t4 = time.perf_counter()
         n_points = len(cloud.point.positions)
-        if n_points == 0:
+        if n_points == 0 and n_stripe_points and removed:
+            reasons = ", ".join(f"{n} {k}" for k, n in removed.items())
+            warnings.append(
+                f"all {n_stripe_points} stripe points are flagged ({reasons}); "
+                "--keep-flagged keeps them"
+            )
+        elif n_points == 0:
             warnings.append("no stripe points found in any frame")
 
         written = None

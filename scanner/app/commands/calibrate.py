@@ -47,6 +47,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+def _figure(value: float | None, decimals: int) -> str:
+    """A quality figure, or ``n/a`` where the method does not give it."""
+    return "n/a" if value is None else f"{value:.{decimals}f}"
+
+
 def run(args: argparse.Namespace) -> int:
     report: Path | str | None = "beside"
     if args.no_report:
@@ -71,15 +76,15 @@ def run(args: argparse.Namespace) -> int:
     )
     q = run_.quality
     print(f"wrote {run_.calibration_path}")
+    plane_um = None if q.light_plane_rms_mm is None else q.light_plane_rms_mm * 1000
     plane = (
         "no light plane (no laser images: a camera-only calibration)"
         if run_.result.calibration.light_plane is None
-        else f"light plane RMS {(q.light_plane_rms_mm or 0.0) * 1000:.1f} um "
-        f"({q.light_plane_frames} frames)"
+        else f"light plane RMS {_figure(plane_um, 1)} um ({q.light_plane_frames} frames)"
     )
     print(
-        f"  intrinsics RMS {q.intrinsics_rms_px:.3f} px; {plane}; hand-eye {q.hand_eye_method}, "
-        f"chain RMS {q.hand_eye_rms_px:.3f} px"
+        f"  intrinsics RMS {_figure(q.intrinsics_rms_px, 3)} px; {plane}; hand-eye "
+        f"{q.hand_eye_method}, chain RMS {_figure(q.hand_eye_rms_px, 3)} px"
     )
     if run_.report_path is not None:
         print(f"  report {run_.report_path}")

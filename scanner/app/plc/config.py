@@ -149,6 +149,11 @@ class CheckTolerances:
     max_abs_um: float = 250.0
     max_o_spread_um: float = 500.0
 
+    def __post_init__(self) -> None:
+        for key in ("max_mean_abs_um", "max_abs_um", "max_o_spread_um"):
+            if not getattr(self, key) > 0:
+                raise ValueError(f"{key}: expected a positive limit, got {getattr(self, key)}")
+
 
 @dataclass(frozen=True)
 class CalibrationGate:

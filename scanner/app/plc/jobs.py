@@ -373,6 +373,14 @@ class PipelineJobs:
         run = _call(stages.calibrate, ctx.session_path, job.calibration)
         ctx.check_cancelled()
         passed, reason, plane_um = calibration_gate(run.quality, self.config.calibration_gate)
+        if run.result.calibration.light_plane is None:
+            passed, reason = (
+                False,
+                (
+                    "a camera-only calibration (the session has no laser images): the scanner "
+                    "needs a light plane; the current calibration is kept"
+                ),
+            )
         results = (plane_um, None, None)
         if not passed:
             return JobOutcome(

@@ -73,3 +73,10 @@ def test_stages_record_their_provenance(files, tmp_path):
     assert record["inputs"]["cloud"]["path"] == str(files["cloud"].resolve())
     assert len(record["inputs"]["cloud"]["sha256"]) == 64
     assert judged.files.html_path.is_file() and judged.result.passed
+
+
+def test_a_report_named_like_the_result_is_refused(files, tmp_path, capsys):
+    argv = ["calibrate", str(files["session"]), "--out", str(tmp_path / "cal.json"),
+            "--report", str(tmp_path / "cal.json")]  # fmt: skip
+    assert main(argv) == 2
+    assert "named for two outputs of one run" in capsys.readouterr().err

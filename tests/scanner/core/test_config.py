@@ -64,3 +64,14 @@ def test_bad_config_names_file_line_and_key(tmp_path, text, message):
         load_config(Example, write(tmp_path, text))
     assert "example.toml" in str(err.value)
     assert message in str(err.value)
+
+
+def test_a_path_with_a_folder_is_never_replaced_by_a_shipped_namesake(tmp_path):
+    from scanner.core.config import resolve_config
+    from scanner.core.fileio import InputError
+
+    assert resolve_config("paper_sweep", "plans").is_file()  # a bare name: the shipped plan
+    with pytest.raises(InputError, match="config file not found"):
+        resolve_config(tmp_path / "nowhere" / "paper_sweep.toml", "plans")
+    with pytest.raises(InputError, match="config file not found"):
+        resolve_config("/etc/nowhere/plc.toml")

@@ -30,9 +30,10 @@ def test_outputs_appear_together_or_not_at_all(tmp_path: Path):
     assert a.read_text() == "old a"
     assert not list(tmp_path.glob(".a.json.*")), "staging left behind"
     with commit_together() as staged:
-        write_text_atomic(staged(a), "new a")
+        staged_a = staged(a)
+        write_text_atomic(staged_a, "new a")
         write_text_atomic(staged(b), "new b")
-        write_text_atomic(staged(a).with_suffix(".csv"), "a twin named by its writer")
+        write_text_atomic(staged_a.with_suffix(".csv"), "a twin named by its writer")
     assert a.read_text() == "new a" and b.read_text() == "new b"
     assert (tmp_path / "a.csv").read_text() == "a twin named by its writer"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.csv", "a.json", "file", "sub"]
@@ -83,3 +84,12 @@ def test_input_errors_cross_process_boundaries_whole(error: InputError):
     back = pickle.loads(pickle.dumps(error))
     assert type(back) is type(error)
     assert str(back) == str(error) and back.path == error.path and back.reason == error.reason
+
+
+def test_one_name_for_two_outputs_is_refused(tmp_path: Path):
+    out = tmp_path / "cal.json"
+    with pytest.raises(InputError, match="named for two outputs"):
+        check_outputs_apart([], [out, tmp_path / "." / "cal.json"])
+    with pytest.raises(InputError, match="named for two outputs"), commit_together() as staged:
+        staged(out)
+        staged(out)

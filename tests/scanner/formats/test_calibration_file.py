@@ -146,3 +146,14 @@ def test_the_laser_origin_round_trips(tmp_path):
     np.testing.assert_array_equal(
         read_calibration(tmp_path / "c.json").laser_origin_cam, calib.laser_origin_cam
     )
+
+
+@pytest.mark.parametrize("width", [1e999, "1024", True])
+def test_a_calibration_image_size_must_be_a_whole_number(tmp_path, width):
+    write_calibration(tmp_path / "c.json", paper_calibration())
+    text = (tmp_path / "c.json").read_text()
+    obj = json.loads(text)
+    obj["camera"]["width"] = width
+    (tmp_path / "c.json").write_text(json.dumps(obj).replace("Infinity", "1e999"))
+    with pytest.raises(InputError, match=r"camera\.width: expected a whole number"):
+        read_calibration(tmp_path / "c.json")

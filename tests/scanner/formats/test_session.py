@@ -221,3 +221,19 @@ def test_images_outside_the_folder_are_read_when_allowed(tmp_path, monkeypatch):
         read_session(root)
     monkeypatch.setenv("SCANNER_ALLOW_OUTSIDE_IMAGES", "1")
     assert read_session(root).frames[0].target_image == shared.resolve()
+
+
+def test_a_row_ending_in_empty_cells_is_read(tmp_path):
+    root, _ = make_session(tmp_path)
+    rewrite_csv(root, lambda ls: [ls[0], ls[1] + ",,", *ls[2:]])  # a spreadsheet's trailing commas
+    assert len(read_session(root).frames) == 4
+
+
+@pytest.mark.parametrize("width", [1e999, "64", True, 64.5])
+def test_an_image_size_that_is_no_whole_number_is_refused(tmp_path, width):
+    root, _ = make_session(tmp_path)
+    meta = json.loads((root / "session.json").read_text())
+    meta["camera"]["width"] = width
+    (root / "session.json").write_text(json.dumps(meta).replace("Infinity", "1e999"))
+    with pytest.raises(InputError, match="camera: expected integer width and height"):
+        read_session(root)

@@ -47,3 +47,11 @@ def test_a_nan_timeout_cannot_disable_the_watchdog(tmp_path, key):
     path.write_text(text.replace(f"{key} = ", f"{key} = nan  # was ", 1))
     with pytest.raises(ConfigError, match=f"watchdog.{key}: expected a finite number"):
         load_plc_config(path)
+
+
+def test_a_check_limit_of_zero_is_refused_at_load(tmp_path):
+    text = (REPO_CONFIGS / "plc.toml").read_text()
+    path = tmp_path / "plc.toml"
+    path.write_text(text.replace("max_abs_um = 250.0", "max_abs_um = 0.0", 1))
+    with pytest.raises(ConfigError, match=r"check\.max_abs_um: expected a positive limit"):
+        load_plc_config(path)

@@ -149,7 +149,10 @@ def _fake_pipeline(monkeypatch: pytest.MonkeyPatch, quality: dict, rows: list) -
     def calibrate(session: Path, out: Path, **_: object) -> SimpleNamespace:
         Path(out).write_text("new", "utf-8")
         return SimpleNamespace(
-            quality=CalibrationQuality.from_json(quality), calibration_path=out, report_path=None
+            quality=CalibrationQuality.from_json(quality),
+            calibration_path=out,
+            report_path=None,
+            result=SimpleNamespace(calibration=SimpleNamespace(light_plane=object())),
         )
 
     def scan(sessions: list[Path], calibration: Path, out: Path, **_: object) -> None:
