@@ -76,29 +76,31 @@ __all__ = [
 # provenance
 
 
-def _digest(path: Path) -> str | None:
-    """SHA-256 of a file (``None`` for a folder or a missing file)."""
-    if not path.is_file():
-        return None
+def _digest(*paths: Path) -> str | None:
+    """SHA-256 of the files' bytes in turn (``None`` when one is missing)."""
     h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
+    for path in paths:
+        if not path.is_file():
+            return None
+        with open(path, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
     return h.hexdigest()
 
 
 def provenance(stage: str, inputs: dict[str, Path | None]) -> dict[str, Any]:
     """What produced an artefact: the stage, the program's version, when, and from what.
 
-    Files are recorded with their SHA-256; a session folder with its ``session.json``'s.
+    Files are recorded with their SHA-256; a session folder with that of its ``session.json``
+    and ``frames.csv`` (its images are named there, with their poses).
     """
     record: dict[str, Any] = {}
     for name, path in inputs.items():
         if path is None:
             continue
         p = Path(path).resolve()
-        marker = p / "session.json" if p.is_dir() else p
-        record[name] = {"path": str(p), "sha256": _digest(marker)}
+        files = (p / "session.json", p / "frames.csv") if p.is_dir() else (p,)
+        record[name] = {"path": str(p), "sha256": _digest(*files)}
     return {
         "stage": stage,
         "scanner_version": __version__,
