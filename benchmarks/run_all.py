@@ -73,6 +73,12 @@ BENCHMARKS: list[tuple[str, str, list[str], list[str]]] = [
         [],
         ["--seconds", "2"],
     ),
+    (
+        "batch",
+        "`scanner batch` on Dask against serial scan + measure runs",
+        ["--work", "{work}/batch"],
+        ["--work", "{work}/batch", "--frames", "100", "--small", "8"],
+    ),
 ]
 
 
