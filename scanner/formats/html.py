@@ -23,6 +23,7 @@ from __future__ import annotations
 import base64
 import html
 import io
+import math
 import os
 from collections.abc import Iterable, Mapping, Sequence
 from datetime import datetime, timezone
@@ -179,13 +180,15 @@ def table(headers: Sequence[str], rows: Iterable[Sequence[Any]], decimals: int =
 def key_value_table(items: Mapping[str, Any] | Iterable[tuple[str, Any]]) -> str:
     """A two-column table (calibration file used, its date, cloud size, options...).
 
-    Floats print with up to 6 significant digits; other values with ``str``.
+    Floats print with 4 decimals (a figure of a report, not a float's repr), very small or
+    very large ones with 4 significant digits; other values with ``str``.
     """
     pairs = items.items() if isinstance(items, Mapping) else items
     out = ['<table class="kv"><tbody>\n']
     for key, value in pairs:
         if isinstance(value, float):
-            text = f"{value:.6g}"
+            plain = value == 0 or 1e-3 <= abs(value) < 1e6 or not math.isfinite(value)
+            text = f"{value:.4f}" if plain else f"{value:.4g}"
         elif value is None:
             text = "-"
         else:

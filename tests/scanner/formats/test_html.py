@@ -51,7 +51,7 @@ def test_page_is_self_contained_with_embedded_figure(tmp_path: Path):
     srcs = re.findall(r'src="([^"]+)"', text)
     assert len(srcs) == 2 and all(s.startswith("data:image/png;base64,") for s in srcs)
     assert base64.b64decode(srcs[0].split(",", 1)[1]) == png
-    assert "0.123457" in text
+    assert "0.1235" in text
     assert "href=" not in text
 
 
