@@ -71,7 +71,7 @@ def resolve_config(name_or_path: str | os.PathLike[str], subdir: str = "") -> Pa
         return p
     if len(p.parts) > 1:
         # A path with a folder is meant as a path: never replaced by a shipped namesake.
-        raise InputError(p, "config file not found")
+        raise InputError(p, "config not found (no such file)")
     name = p.name if p.suffix == ".toml" else f"{p.name}.toml"
     candidates = [folder / subdir / name for folder in config_dirs()]
     for candidate in candidates:

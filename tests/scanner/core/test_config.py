@@ -71,7 +71,7 @@ def test_a_path_with_a_folder_is_never_replaced_by_a_shipped_namesake(tmp_path):
     from scanner.core.fileio import InputError
 
     assert resolve_config("paper_sweep", "plans").is_file()  # a bare name: the shipped plan
-    with pytest.raises(InputError, match="config file not found"):
+    with pytest.raises(InputError, match="config not found"):
         resolve_config(tmp_path / "nowhere" / "paper_sweep.toml", "plans")
-    with pytest.raises(InputError, match="config file not found"):
+    with pytest.raises(InputError, match="config not found"):
         resolve_config("/etc/nowhere/plc.toml")
