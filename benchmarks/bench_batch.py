@@ -34,34 +34,14 @@ from pathlib import Path
 import numpy as np
 
 from scanner.formats.calibration_file import write_calibration
-from scanner.virtual_cell.analytic import TableStepScene, write_table_step_sweep
+from scanner.virtual_cell.analytic import (
+    TableStepScene,
+    table_step_plan,
+    write_table_step_sweep,
+)
 from scanner.virtual_cell.simulate import simulate_cell
 
 SCANNER = [sys.executable, "-m", "scanner.app.cli"]
-
-SMALL_PLAN = """
-name = "table and block"
-threshold_mm = 0.5
-
-[[features]]
-name = "table"
-kind = "plane"
-region = { box_min_mm = [-30.0, -60.0, -3.0], box_max_mm = [-14.0, 60.0, 3.0] }
-nominal = { normal = [0.0, 0.0, 1.0] }
-
-[[features]]
-name = "top"
-kind = "plane"
-region = { box_min_mm = [-8.0, -60.0, 17.0], box_max_mm = [8.0, 60.0, 23.0] }
-nominal = { normal = [0.0, 0.0, 1.0] }
-
-[[measurements]]
-name = "step height"
-type = "distance"
-features = ["top", "table"]
-nominal = 20.0
-tolerance = 0.2
-"""
 
 
 def cpu_model() -> str:
@@ -174,7 +154,7 @@ def small_sessions(work: Path, count: int) -> tuple[list[Path], Path, Path]:
     calibration = root / "calibration.json"
     write_calibration(calibration, TableStepScene().calibration())
     plan = root / "plan.toml"
-    plan.write_text(SMALL_PLAN, encoding="utf-8")
+    plan.write_text(table_step_plan(), encoding="utf-8")
     return sessions, calibration, plan
 
 

@@ -16,6 +16,25 @@ def real_data_dir() -> Path:
     return Path(env) if env else (REPO_ROOT.parent / "shared" / "data" / "real").resolve()
 
 
+def real_data_subdir(sub: str) -> Path:
+    """``sub`` of :func:`real_data_dir`; skips the calling test when that folder is absent.
+
+    Parameters
+    ----------
+    sub : str
+        Folder of one capture below the real-data root, e.g. ``"kuka_1"``.
+
+    Returns
+    -------
+    Path
+        The capture's folder.
+    """
+    root = real_data_dir() / sub
+    if not root.is_dir():
+        pytest.skip(f"real data not found at {root} (set SCANNER_REAL_DATA)")
+    return root
+
+
 @pytest.fixture
 def real_data() -> Path:
     path = real_data_dir()

@@ -617,8 +617,10 @@ def _rows_csv(outcomes: Sequence[SessionOutcome]) -> str:
     writer.writerow(RESULT_COLUMNS)
     for o in outcomes:
         for r in o.rows:
-            cells = [o.name, *(getattr(r, c) for c in RESULT_COLUMNS[1:])]
-            writer.writerow([spreadsheet_safe(c) for c in cells])
+            # The row's cells are measure.csv's text, already safe; the session's name is ours.
+            writer.writerow(
+                [spreadsheet_safe(o.name), *(getattr(r, c) for c in RESULT_COLUMNS[1:])]
+            )
     return buf.getvalue()
 
 

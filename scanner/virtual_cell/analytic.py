@@ -248,3 +248,55 @@ def write_table_step_sweep(
         )
     write_session(root, "sweep", scene.width, scene.height, frames, rotation="quaternion_wxyz")
     return root, cal, scene
+
+
+def table_step_plan(
+    step_tolerance_mm: float = 0.2, flatness_tolerance_mm: float | None = None
+) -> str:
+    """An inspection plan (TOML) fitted to the default :class:`TableStepScene`.
+
+    Parameters
+    ----------
+    step_tolerance_mm : float
+        Tolerance of the block's step height (nominal 20 mm) above the table.
+    flatness_tolerance_mm : float or None
+        With a value, the plan also measures the table's flatness to this tolerance.
+
+    Returns
+    -------
+    str
+        The plan's text: features ``table`` and ``top``, the measurement ``step height`` and,
+        with ``flatness_tolerance_mm``, ``table flatness``.
+    """
+    text = f"""
+name = "table and block"
+threshold_mm = 0.5
+
+[[features]]
+name = "table"
+kind = "plane"
+region = {{ box_min_mm = [-30.0, -60.0, -3.0], box_max_mm = [-14.0, 60.0, 3.0] }}
+nominal = {{ normal = [0.0, 0.0, 1.0] }}
+
+[[features]]
+name = "top"
+kind = "plane"
+region = {{ box_min_mm = [-8.0, -60.0, 17.0], box_max_mm = [8.0, 60.0, 23.0] }}
+nominal = {{ normal = [0.0, 0.0, 1.0] }}
+
+[[measurements]]
+name = "step height"
+type = "distance"
+features = ["top", "table"]
+nominal = 20.0
+tolerance = {step_tolerance_mm!r}
+"""
+    if flatness_tolerance_mm is not None:
+        text += f"""
+[[measurements]]
+name = "table flatness"
+type = "flatness"
+features = ["table"]
+tolerance = {flatness_tolerance_mm!r}
+"""
+    return text

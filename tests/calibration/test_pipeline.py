@@ -16,7 +16,7 @@ from scanner.core.planes import plane_errors
 from scanner.core.targets import ChessboardTarget, CircleGridTarget
 from scanner.formats.calibration_file import read_calibration
 from scanner.formats.session import Frame, Session
-from tests.conftest import REPO_ROOT, real_data_dir
+from tests.conftest import REPO_ROOT, real_data_subdir
 
 
 def test_paper_method_needs_the_concentric_target(tmp_path):
@@ -124,9 +124,7 @@ def test_scanner_calibrate_command_writes_file_and_report(modern_cell, tmp_path)
 @pytest.mark.slow
 @pytest.mark.real_data
 def test_kuka_full_chain_beats_opencv_with_the_same_intrinsics():
-    root = real_data_dir() / "kuka_1"
-    if not root.is_dir():
-        pytest.skip(f"real data not found at {root} (set SCANNER_REAL_DATA)")
+    root = real_data_subdir("kuka_1")
     from calibration.detection.detect import detect_target
     from calibration.hand_eye import PosedView, calibrate_hand_eye
     from calibration.intrinsics import calibrate_intrinsics
@@ -153,9 +151,7 @@ def test_kuka_full_chain_beats_opencv_with_the_same_intrinsics():
 @pytest.mark.slow
 @pytest.mark.real_data
 def test_linelight_plane_agrees_with_the_authors(monkeypatch):
-    root = real_data_dir() / "zhaocongyang_linelight"
-    if not root.is_dir():
-        pytest.skip(f"real data not found at {root} (set SCANNER_REAL_DATA)")
+    root = real_data_subdir("zhaocongyang_linelight")
     import importlib.util
 
     spec = importlib.util.spec_from_file_location(

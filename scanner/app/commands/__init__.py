@@ -11,7 +11,16 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-__all__ = ["add_calibration", "add_cloud_judging", "add_out", "add_session", "positive_int"]
+from scanner.scanning.pipeline import ScanOptions
+
+__all__ = [
+    "add_calibration",
+    "add_cloud_judging",
+    "add_out",
+    "add_session",
+    "positive_int",
+    "scan_options",
+]
 
 
 def positive_int(text: str) -> int:
@@ -51,3 +60,28 @@ def add_cloud_judging(p: argparse.ArgumentParser, option: str, what: str, strict
     add_out(p, "result to write (.json; .csv and .html beside)")
     add_calibration(p, required=False)
     p.add_argument("--strict", action="store_true", help=f"exit 1 when {strict}")
+
+
+def scan_options(args: argparse.Namespace) -> ScanOptions:
+    """The :class:`ScanOptions` that ``scanner scan``'s parsed arguments ask for.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Arguments parsed by the ``scan`` sub-command's parser.
+
+    Returns
+    -------
+    ScanOptions
+        Stripe mode, cloud filtering, ICP and extraction processes as given on the command line.
+    """
+    return ScanOptions(
+        mode=args.mode,
+        voxel_mm=args.voxel_mm,
+        outlier_neighbors=args.outliers,
+        normals_radius_mm=args.normals_mm,
+        icp=args.icp,
+        workers=args.workers,
+        keep_flagged=args.keep_flagged,
+        max_incidence_deg=args.max_incidence_deg,
+    )

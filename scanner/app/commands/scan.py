@@ -12,8 +12,7 @@ import sys
 from pathlib import Path
 
 from scanner.app import stages
-from scanner.app.commands import add_calibration, add_out
-from scanner.scanning.pipeline import ScanOptions
+from scanner.app.commands import add_calibration, add_out, scan_options
 
 SUMMARY = "turn sweep sessions into a point cloud (base frame, mm)"
 DESCRIPTION = "Extract the laser stripe of every frame, triangulate it with the calibration, stitch the sweeps by the robot poses and write one cloud (.ply binary, .pcd or .e57)."
@@ -81,16 +80,7 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--outliers: expected >= 0 neighbours, got {args.outliers}")
     if args.workers < 1:
         raise ValueError(f"--workers: expected >= 1, got {args.workers}")
-    options = ScanOptions(
-        mode=args.mode,
-        voxel_mm=args.voxel_mm,
-        outlier_neighbors=args.outliers,
-        normals_radius_mm=args.normals_mm,
-        icp=args.icp,
-        workers=args.workers,
-        keep_flagged=args.keep_flagged,
-        max_incidence_deg=args.max_incidence_deg,
-    )
+    options = scan_options(args)
     run_ = stages.scan(
         args.sessions,
         args.calibration,

@@ -10,9 +10,10 @@ from __future__ import annotations
 import ipaddress
 import os
 import re
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 from scanner.core.config import load_config, resolve_config
 
@@ -94,6 +95,29 @@ class ServerConfig:
         return [ipaddress.ip_network(e, strict=False) for e in self.allowed_clients]
 
 
+def _refuse_fields(config: Any, bad: Callable[[float], bool], expected: str) -> None:
+    """Raise on the first field of the dataclass ``config`` that ``rule`` refuses.
+
+    Parameters
+    ----------
+    config : dataclass instance
+        A section whose fields are all numbers under the same rule.
+    bad : callable
+        True for a refused value.
+    expected : str
+        What is expected instead, for the message.
+
+    Raises
+    ------
+    ValueError
+        ``"<field>: expected <expected>, got <value>"``.
+    """
+    for f in fields(config):
+        value = getattr(config, f.name)
+        if bad(value):
+            raise ValueError(f"{f.name}: expected {expected}, got {value}")
+
+
 @dataclass(frozen=True)
 class WatchdogConfig:
     """Limits on a running job; 0 disables a limit."""
@@ -106,10 +130,7 @@ class WatchdogConfig:
     shutdown_grace_s: float = 5.0
 
     def __post_init__(self) -> None:
-        for name in ("heartbeat_timeout_s", "job_timeout_s", "shutdown_grace_s"):
-            value = getattr(self, name)
-            if value < 0:
-                raise ValueError(f"{name}: expected >= 0, got {value}")
+        _refuse_fields(self, lambda v: v < 0, ">= 0")
 
 
 @dataclass(frozen=True)
@@ -150,9 +171,7 @@ class CheckTolerances:
     max_o_spread_um: float = 500.0
 
     def __post_init__(self) -> None:
-        for key in ("max_mean_abs_um", "max_abs_um", "max_o_spread_um"):
-            if not getattr(self, key) > 0:
-                raise ValueError(f"{key}: expected a positive limit, got {getattr(self, key)}")
+        _refuse_fields(self, lambda v: not v > 0, "a positive limit")
 
 
 @dataclass(frozen=True)

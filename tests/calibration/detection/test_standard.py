@@ -1,6 +1,3 @@
-import os
-from pathlib import Path
-
 import numpy as np
 import pytest
 
@@ -10,16 +7,10 @@ from scanner.core.conventions import transform_points
 from scanner.core.images import load_gray_image
 from scanner.core.targets import ChessboardTarget, CircleGridTarget
 from tests.calibration.synth_concentric import look_at_pose, render
+from tests.conftest import real_data_subdir
 
 K = np.array([[1300.0, 0.0, 405.0], [0.0, 1298.0, 318.0], [0.0, 0.0, 1.0]])
 BOARD = ChessboardTarget(inner_corners=(9, 6), square_mm=12.0)
-
-
-def real_data_dir() -> Path:
-    env = os.environ.get("SCANNER_REAL_DATA")
-    if env:
-        return Path(env)
-    return Path(__file__).resolve().parents[3] / ".." / "shared" / "data" / "real"
 
 
 def test_chessboard_corners_are_sub_pixel():
@@ -46,17 +37,10 @@ def test_missing_chessboard_is_reported():
     assert "not found" in obs.reason
 
 
-def _real(sub: str) -> Path:
-    root = real_data_dir() / sub
-    if not root.is_dir():
-        pytest.skip(f"real data not found at {root} (set SCANNER_REAL_DATA)")
-    return root
-
-
 @pytest.mark.real_data
 @pytest.mark.slow
 def test_circle_grid_real_data_reproduces_authors_focal_length():
-    root = _real("zhaocongyang_linelight/calib_picture")
+    root = real_data_subdir("zhaocongyang_linelight/calib_picture")
     target = CircleGridTarget(grid=(7, 7), pitch_mm=37.5)
     obs = [detect_target(load_gray_image(p), target) for p in sorted(root.glob("calib*.jpg"))]
     assert sum(map(bool, obs)) >= 10
@@ -67,7 +51,7 @@ def test_circle_grid_real_data_reproduces_authors_focal_length():
 @pytest.mark.real_data
 @pytest.mark.slow
 def test_kuka_chessboard_real_data_rms_below_a_tenth_of_a_pixel():
-    root = _real("kuka_1")
+    root = real_data_subdir("kuka_1")
     target = ChessboardTarget(inner_corners=(28, 17), square_mm=20.0)
     # Every other image keeps the test short; the first poses are pure translations, so a
     # prefix alone would leave the focal length undetermined.

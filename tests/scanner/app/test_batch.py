@@ -35,56 +35,30 @@ from scanner.app.batch import (
     prepare,
 )
 from scanner.app.cli import build_parser, main
+from scanner.app.commands import scan_options
 from scanner.app.commands.batch import ProgressLine, compare_results
 from scanner.core.fileio import InputError
 from scanner.formats.calibration_file import write_calibration
 from scanner.formats.clouds import read_cloud
 from scanner.formats.layout import JobLayout
 from scanner.scanning.pipeline import ScanOptions
-from scanner.virtual_cell.analytic import TableStepScene, write_table_step_sweep
+from scanner.virtual_cell.analytic import (
+    TableStepScene,
+    table_step_plan,
+    write_table_step_sweep,
+)
 from tests.conftest import REPO_ROOT
 
 FRAMES = np.linspace(-30.0, 30.0, 40)
 
-PLAN = """
-name = "table and block"
-threshold_mm = 0.5
-
-[[features]]
-name = "table"
-kind = "plane"
-region = { box_min_mm = [-30.0, -60.0, -3.0], box_max_mm = [-14.0, 60.0, 3.0] }
-nominal = { normal = [0.0, 0.0, 1.0] }
-
-[[features]]
-name = "top"
-kind = "plane"
-region = { box_min_mm = [-8.0, -60.0, 17.0], box_max_mm = [8.0, 60.0, 23.0] }
-nominal = { normal = [0.0, 0.0, 1.0] }
-
-[[measurements]]
-name = "step height"
-type = "distance"
-features = ["top", "table"]
-nominal = 20.0
-tolerance = {tolerance}
-
-[[measurements]]
-name = "table flatness"
-type = "flatness"
-features = ["table"]
-tolerance = 0.5
-"""
-
 
 def write_plan(path: Path, tolerance: float = 0.2) -> Path:
-    path.write_text(PLAN.replace("{tolerance}", repr(tolerance)), encoding="utf-8")
+    path.write_text(table_step_plan(tolerance, flatness_tolerance_mm=0.5), encoding="utf-8")
     return path
 
 
 @dataclass(frozen=True)
 class Scene:
-    root: Path
     sessions: tuple[Path, ...]
     calibration: Path
     plan: Path
@@ -101,7 +75,7 @@ def scene(tmp_path_factory) -> Scene:
         sessions.append(session)
     calibration = root / "calibration.json"
     write_calibration(calibration, cal)
-    return Scene(root, tuple(sessions), calibration, write_plan(root / "plan.toml"))
+    return Scene(tuple(sessions), calibration, write_plan(root / "plan.toml"))
 
 
 def batch(scene: Scene, sessions, out: Path, *extra: str) -> int:
@@ -145,14 +119,7 @@ def broken_copy(session: Path, dest: Path) -> Path:
 
 def test_batch_scans_with_the_scan_commands_defaults_on_one_process():
     args = build_parser().parse_args(["scan", "s", "--calibration", "c.json", "--out", "x.ply"])
-    cli = ScanOptions(
-        mode=args.mode,
-        voxel_mm=args.voxel_mm,
-        outlier_neighbors=args.outliers,
-        normals_radius_mm=args.normals_mm,
-        icp=args.icp,
-        workers=args.workers,
-    )
+    cli = scan_options(args)
     batch_args = build_parser().parse_args(
         ["batch", "s", "--calibration", "c.json", "--plan", "p", "--out", "o"]
     )
@@ -400,24 +367,12 @@ def test_batch_runs_on_a_dask_scheduler_and_worker(scene, tmp_path):
         stack.callback(lambda: [_stop(p) for p in reversed(procs)])
         scheduler_log = stack.enter_context(open(logs / "scheduler.log", "w"))
         worker_log = stack.enter_context(open(logs / "worker.log", "w"))
-        procs.append(
-            subprocess.Popen(
-                scheduler_args,
-                stdout=subprocess.DEVNULL,
-                stderr=scheduler_log,
-                cwd=REPO_ROOT,
-                env=env,
+        for args, log in ((scheduler_args, scheduler_log), (worker_args, worker_log)):
+            procs.append(
+                subprocess.Popen(
+                    args, stdout=subprocess.DEVNULL, stderr=log, cwd=REPO_ROOT, env=env
+                )
             )
-        )
-        procs.append(
-            subprocess.Popen(
-                worker_args,
-                stdout=subprocess.DEVNULL,
-                stderr=worker_log,
-                cwd=REPO_ROOT,
-                env=env,
-            )
-        )
         out = tmp_path / "out"
         code = batch(scene, scene.sessions, out, "--scheduler", address)
         assert code == 0, (logs / "worker.log").read_text()[-2000:]

@@ -19,7 +19,7 @@ from scanner.core.targets import ChessboardTarget
 from scanner.formats.calibration_file import read_calibration
 from scanner.formats.session import Frame, read_session, write_session
 from scanner.virtual_cell.truth import read_truth
-from tests.conftest import real_data_dir
+from tests.conftest import real_data_subdir
 
 
 def _without_lasers(source: Path, out: Path, keep_posed: int | None = None) -> Path:
@@ -88,9 +88,7 @@ def _kuka_session(root: Path, out: Path, convention: RotationConvention) -> Path
 @pytest.mark.real_data
 @pytest.mark.parametrize("convention", list(RotationConvention))
 def test_kuka_poses_read_the_same_in_every_rotation_convention(tmp_path, convention):
-    root = real_data_dir() / "kuka_1"
-    if not root.is_dir():
-        pytest.skip(f"real data not found at {root} (set SCANNER_REAL_DATA)")
+    root = real_data_subdir("kuka_1")
     session = read_session(_kuka_session(root, tmp_path / "S", convention))
     poses = np.loadtxt(root / "RobotPosesVec.txt").reshape(-1, 4, 4)
     poses[:, :3, 3] *= 1000.0
@@ -101,9 +99,7 @@ def test_kuka_poses_read_the_same_in_every_rotation_convention(tmp_path, convent
 @pytest.mark.slow
 @pytest.mark.real_data
 def test_kuka_camera_only_session_calibrates_through_the_command(tmp_path):
-    root = real_data_dir() / "kuka_1"
-    if not root.is_dir():
-        pytest.skip(f"real data not found at {root} (set SCANNER_REAL_DATA)")
+    root = real_data_subdir("kuka_1")
     session = _kuka_session(root, tmp_path / "S", RotationConvention.EULER_ZYX_DEG)
     out = tmp_path / "kuka.json"
     assert main(["calibrate", str(session), "--out", str(out), "--quiet"]) == 0

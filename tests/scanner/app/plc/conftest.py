@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import re
 import socket
 import struct
+import subprocess
 import threading
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
@@ -22,9 +24,12 @@ from scanner.app.plc.config import (
 )
 from scanner.app.plc.jobs import JobRunner
 from scanner.app.plc.service import serve
+from scanner.core.subprocesses import start_module
+from tests.conftest import REPO_ROOT
 from tests.scanner.app.plc.fakes import FakeJobs
 
 HOST = "127.0.0.1"
+FAKE_RUNNER = "tests.scanner.app.plc.fakes:FakeJobs"
 
 
 def make_config(tmp: Path, **server: object) -> PlcConfig:
@@ -37,8 +42,100 @@ def make_config(tmp: Path, **server: object) -> PlcConfig:
             work_dir=str(tmp / "jobs"),
             calibration=str(tmp / "calibration.json"),
         ),
-        jobs=JobsConfig(runner="tests.scanner.app.plc.fakes:FakeJobs", worker="thread"),
+        jobs=JobsConfig(runner=FAKE_RUNNER, worker="thread"),
     )
+
+
+def write_config_file(
+    tmp: Path,
+    *,
+    host: str = HOST,
+    port: int = 0,
+    history_db: Path | None = None,
+    runner: str = FAKE_RUNNER,
+    worker: str = "thread",
+    **watchdog: float,
+) -> Path:
+    """``tmp/plc.toml`` for ``scanner serve --config``: files under ``tmp``, watchdog off.
+
+    Parameters
+    ----------
+    tmp : Path
+        Folder of the config, the job history (unless ``history_db``) and the job outputs.
+    host, port : str, int
+        ``[server]`` address.
+    history_db : Path, optional
+        ``[storage] history_db`` (default ``tmp/history.sqlite``).
+    runner, worker : str
+        ``[jobs]`` runner factory and worker kind.
+    **watchdog : float
+        ``[watchdog]`` limits replacing the defaults (0 s: off; shutdown grace 2 s).
+
+    Returns
+    -------
+    Path
+        The config file written.
+    """
+    wd = {"heartbeat_timeout_s": 0.0, "job_timeout_s": 0.0, "shutdown_grace_s": 2.0, **watchdog}
+    text = f"""
+[server]
+host = "{host}"
+port = {port}
+allowed_clients = ["127.0.0.1"]
+
+[watchdog]
+{chr(10).join(f"{k} = {v}" for k, v in wd.items())}
+
+[storage]
+history_db = "{history_db or tmp / "history.sqlite"}"
+work_dir = "{tmp / "jobs"}"
+calibration = "{tmp / "calibration.json"}"
+
+[jobs]
+runner = "{runner}"
+worker = "{worker}"
+"""
+    path = tmp / "plc.toml"
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+class Served:
+    """``scanner serve --config CONFIG ARGS...`` in a subprocess, started and listening.
+
+    Parameters
+    ----------
+    config : Path
+        The service's config file.
+    *args : str
+        More arguments of ``scanner serve`` (``--port 0``, ...).
+    stderr : int
+        Where the service's stderr goes: a pipe (read into the error when it does not start)
+        or ``subprocess.DEVNULL`` for a service that may write more than a pipe holds.
+    """
+
+    def __init__(self, config: Path, *args: str, stderr: int = subprocess.PIPE) -> None:
+        self.proc = start_module(
+            "scanner.app.cli",
+            ["serve", "--config", str(config), *args],
+            REPO_ROOT,
+            stdout=subprocess.PIPE,
+            stderr=stderr,
+        )
+        line = self.proc.stdout.readline() if self.proc.stdout else ""
+        m = re.search(r"listening on 127\.0\.0\.1:(\d+)", line)
+        if not m:
+            self.proc.kill()
+            err = self.proc.stderr.read() if self.proc.stderr else ""
+            self.proc.wait(10)
+            raise RuntimeError(f"serve did not start: {line!r} {err!r}")
+        self.port = int(m.group(1))
+
+    def stop(self) -> None:
+        """Kill the service if it still runs, and reap it."""
+        if self.proc.poll() is None:
+            self.proc.kill()
+        self.proc.wait(10)
 
 
 @dataclass

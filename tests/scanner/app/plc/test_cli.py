@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import os
-import re
 import signal
-import subprocess
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -15,64 +13,16 @@ import pytest
 from scanner.app.cli import main
 from scanner.app.plc.history import JobHistory
 from scanner.app.plc.registers import ErrorCode, Status
-from scanner.core.subprocesses import start_module
-from tests.conftest import REPO_ROOT
+from tests.scanner.app.plc.conftest import Served, write_config_file
 from tests.scanner.app.plc.job_files import wait_for_job_pid
 from tests.scanner.app.plc.test_service import Plc, done
 
 pytestmark = pytest.mark.timeout(120)
 
 
-def write_config(tmp: Path, worker: str = "process", **watchdog: float) -> Path:
-    wd = {"heartbeat_timeout_s": 0.0, "job_timeout_s": 0.0, "shutdown_grace_s": 2.0, **watchdog}
-    text = f"""
-[server]
-host = "127.0.0.1"
-port = 5020
-allowed_clients = ["127.0.0.1"]
-
-[watchdog]
-{chr(10).join(f"{k} = {v}" for k, v in wd.items())}
-
-[storage]
-history_db = "{tmp / "history.sqlite"}"
-work_dir = "{tmp / "jobs"}"
-calibration = "{tmp / "calibration.json"}"
-
-[jobs]
-runner = "tests.scanner.app.plc.fakes:FakeJobs"
-worker = "{worker}"
-"""
-    path = tmp / "plc.toml"
-    path.write_text(text, encoding="utf-8")
-    return path
-
-
-class Served:
-    def __init__(self, config: Path) -> None:
-        self.proc = start_module(
-            "scanner.app.cli",
-            ["serve", "--config", str(config), "--port", "0"],
-            REPO_ROOT,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-        )
-        line = self.proc.stdout.readline() if self.proc.stdout else ""
-        m = re.search(r"listening on 127\.0\.0\.1:(\d+)", line)
-        if not m:
-            self.proc.kill()
-            raise RuntimeError(f"serve did not start: {line!r} {self.proc.stderr.read()!r}")
-        self.port = int(m.group(1))
-
-    def stop(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.kill()
-        self.proc.wait(10)
-
-
 @pytest.fixture
 def served(tmp_path: Path) -> Iterator[Served]:
-    s = Served(write_config(tmp_path))
+    s = Served(write_config_file(tmp_path, port=5020, worker="process"), "--port", "0")
     yield s
     s.stop()
 
@@ -95,8 +45,8 @@ def _proc_state(pid: int) -> str:
 @pytest.mark.slow
 @pytest.mark.parametrize("worker", ["process", "thread"])
 def test_sigkill_mid_job_then_restart_marks_the_job_interrupted(tmp_path: Path, worker: str):
-    config = write_config(tmp_path, worker=worker)
-    first = Served(config)
+    config = write_config_file(tmp_path, port=5020, worker=worker)
+    first = Served(config, "--port", "0")
     try:
         plc = Plc(first.port)
         assert plc.write(0, [2, 33, 0, 100]) == 0  # a 10 s scan job
@@ -115,7 +65,7 @@ def test_sigkill_mid_job_then_restart_marks_the_job_interrupted(tmp_path: Path, 
         assert not _alive(job_pid)
     with JobHistory(tmp_path / "history.sqlite") as h:
         assert h.latest(1)[0].state == "running"  # recorded before the kill, left as it was
-    second = Served(config)
+    second = Served(config, "--port", "0")
     try:
         plc = Plc(second.port)
         st = plc.status()
@@ -132,7 +82,7 @@ def test_sigkill_mid_job_then_restart_marks_the_job_interrupted(tmp_path: Path, 
 @pytest.mark.slow
 @pytest.mark.parametrize("worker", ["process", "thread"])
 def test_sigterm_stops_cleanly_and_records_the_running_job(tmp_path: Path, worker: str):
-    served = Served(write_config(tmp_path, worker=worker))
+    served = Served(write_config_file(tmp_path, port=5020, worker=worker), "--port", "0")
     try:
         _sigterm_mid_job(served, tmp_path)
     finally:

@@ -5,7 +5,6 @@ worker-pool process left behind when the service is stopped or killed."""
 from __future__ import annotations
 
 import os
-import re
 import signal
 import socket
 import sqlite3
@@ -22,12 +21,14 @@ from scanner.app.plc.registers import Status
 from tests.conftest import REPO_ROOT
 from tests.scanner.app.plc.conftest import (
     HOST,
+    Served,
     adu,
     connect,
     make_config,
     read_pdu,
     recv_adu,
     running_service,
+    write_config_file,
     write_pdu,
 )
 from tests.scanner.app.plc.fakes import FakeJobs
@@ -35,41 +36,7 @@ from tests.scanner.app.plc.test_service import Plc
 
 pytestmark = pytest.mark.timeout(120)
 
-FAKE_RUNNER = "tests.scanner.app.plc.fakes:FakeJobs"
 POOL_RUNNER = "tests.scanner.app.plc.pool_fakes:PoolJobs"
-
-
-def _config_file(
-    tmp: Path,
-    *,
-    history_db: Path | None = None,
-    runner: str = FAKE_RUNNER,
-    worker: str = "thread",
-    host: str = HOST,
-) -> Path:
-    text = f"""
-[server]
-host = "{host}"
-port = 0
-allowed_clients = ["127.0.0.1"]
-
-[watchdog]
-heartbeat_timeout_s = 0.0
-job_timeout_s = 0.0
-shutdown_grace_s = 2.0
-
-[storage]
-history_db = "{history_db or tmp / "history.sqlite"}"
-work_dir = "{tmp / "jobs"}"
-calibration = "{tmp / "calibration.json"}"
-
-[jobs]
-runner = "{runner}"
-worker = "{worker}"
-"""
-    path = tmp / "plc.toml"
-    path.write_text(text, encoding="utf-8")
-    return path
 
 
 def _scanner(*args: str, timeout: float = 30.0) -> subprocess.CompletedProcess[str]:
@@ -110,7 +77,7 @@ def test_serve_refuses_a_history_db_that_is_not_a_job_history(tmp_path: Path, ki
         con.commit()
         con.close()
     before = db.read_bytes()
-    proc = _scanner("serve", "--config", str(_config_file(tmp_path, history_db=db)))
+    proc = _scanner("serve", "--config", str(write_config_file(tmp_path, history_db=db)))
     _assert_refused(proc, str(db), "storage.history_db", "not a job history")
     assert db.read_bytes() == before
 
@@ -119,7 +86,7 @@ def test_serve_refuses_an_unwritable_history_db(tmp_path: Path):
     blocker = tmp_path / "var"
     blocker.write_text("a regular file where a folder should be", encoding="utf-8")
     db = blocker / "plc" / "history.sqlite"
-    proc = _scanner("serve", "--config", str(_config_file(tmp_path, history_db=db)))
+    proc = _scanner("serve", "--config", str(write_config_file(tmp_path, history_db=db)))
     _assert_refused(proc, str(db), "storage.history_db", "cannot create the job history")
     assert blocker.read_text(encoding="utf-8").startswith("a regular file")
 
@@ -131,17 +98,17 @@ def test_serve_refuses_an_unwritable_history_db(tmp_path: Path):
 def test_serve_refuses_a_runner_module_that_does_not_exist(
     tmp_path: Path, worker: str, runner: str
 ):
-    config = _config_file(tmp_path, runner=runner, worker=worker)
+    config = write_config_file(tmp_path, runner=runner, worker=worker)
     proc = _scanner("serve", "--config", str(config))
     _assert_refused(proc, str(config), "[jobs] runner", runner)
     assert not (tmp_path / "history.sqlite").exists()  # refused before anything was created
 
 
 def test_serve_refuses_a_host_that_is_not_an_address(tmp_path: Path):
-    config = _config_file(tmp_path)
+    config = write_config_file(tmp_path)
     proc = _scanner("serve", "--config", str(config), "--host", "999.1.1.1")
     _assert_refused(proc, "--host", "999.1.1.1", "expected an IP address")
-    bad = _config_file(tmp_path, host="999.1.1.1")
+    bad = write_config_file(tmp_path, host="999.1.1.1")
     proc = _scanner("serve", "--config", str(bad))
     _assert_refused(proc, str(bad), "server.host", "999.1.1.1")
 
@@ -211,38 +178,14 @@ def _alive(pid: int) -> bool:
     return "zombie" not in state
 
 
-class _Served:
-    """`scanner serve` in a subprocess, on a free port."""
-
-    def __init__(self, config: Path) -> None:
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "scanner.app.cli", "serve", "--config", str(config)],
-            cwd=REPO_ROOT,
-            env={**os.environ, "PYTHONPATH": str(REPO_ROOT)},
-            stdout=subprocess.PIPE,
-            stderr=subprocess.DEVNULL,
-            text=True,
-        )
-        line = self.proc.stdout.readline() if self.proc.stdout else ""
-        m = re.search(r"listening on 127\.0\.0\.1:(\d+)", line)
-        if not m:
-            self.proc.kill()
-            self.proc.wait(10)
-            raise RuntimeError(f"serve did not start: {line!r}")
-        self.port = int(m.group(1))
-
-    def stop(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.kill()
-        self.proc.wait(10)
-
-
 @pytest.fixture
-def pool_job(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[tuple[_Served, list[int]]]:
+def pool_job(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[tuple[Served, list[int]]]:
     """A service (worker from the test's parameter) running a job that keeps a 2-process pool
     busy; yields the service and the pool workers' pids, and kills leftovers afterwards."""
     worker = request.param
-    served = _Served(_config_file(tmp_path, runner=POOL_RUNNER, worker=worker))
+    served = Served(
+        write_config_file(tmp_path, runner=POOL_RUNNER, worker=worker), stderr=subprocess.DEVNULL
+    )
     pids: list[int] = []
     try:
         plc = Plc(served.port)
@@ -272,7 +215,7 @@ def _pool_gone_within(pids: list[int], seconds: float) -> list[int]:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("pool_job", ["thread", "process"], indirect=True)
-def test_sigterm_leaves_no_pool_worker_behind(pool_job: tuple[_Served, list[int]]):
+def test_sigterm_leaves_no_pool_worker_behind(pool_job: tuple[Served, list[int]]):
     served, pids = pool_job
     served.proc.send_signal(signal.SIGTERM)
     assert served.proc.wait(15) == 0  # grace 2 s; it must not wait for the pool's tasks
@@ -280,21 +223,9 @@ def test_sigterm_leaves_no_pool_worker_behind(pool_job: tuple[_Served, list[int]
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("pool_job", ["process"], indirect=True)
-def test_sigkill_leaves_no_pool_worker_of_a_job_process_behind(
-    pool_job: tuple[_Served, list[int]],
-):
-    served, pids = pool_job
-    served.proc.send_signal(signal.SIGKILL)
-    served.proc.wait(10)
-    assert _pool_gone_within(pids, 5.0) == []
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("pool_job", ["thread"], indirect=True)
-def test_sigkill_leaves_no_pool_worker_of_a_thread_job_behind(
-    pool_job: tuple[_Served, list[int]],
-):
+@pytest.mark.parametrize("pool_job", ["process", "thread"], indirect=True)
+def test_sigkill_leaves_no_pool_worker_behind(pool_job: tuple[Served, list[int]]):
+    """Of a job process or of a job thread: killing the service takes the pool with it."""
     served, pids = pool_job
     served.proc.send_signal(signal.SIGKILL)
     served.proc.wait(10)
