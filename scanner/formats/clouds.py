@@ -81,6 +81,8 @@ def write_cloud(
     path: str | os.PathLike[str],
     cloud: o3d.t.geometry.PointCloud,
     metadata: Mapping[str, Any] | None = None,
+    *,
+    frame: str = "base",
 ) -> Path:
     """Write ``cloud`` atomically in the format its extension names.
 
@@ -92,6 +94,8 @@ def write_cloud(
         Positions in mm; attributes are written where the format can hold them.
     metadata : mapping, optional
         JSON-serialisable provenance (calibration file and hash, sessions, options).
+    frame : str
+        The frame the positions are in, named in the PLY header ("base", "nominal").
 
     Returns
     -------
@@ -105,7 +109,7 @@ def write_cloud(
     if "positions" not in arrays:
         raise ValueError("cloud: expected a positions attribute, got none")
     if ext == ".ply":
-        _write_ply(target, arrays, meta)
+        _write_ply(target, arrays, meta, frame)
     elif ext == ".pcd":
         with atomic_output(target) as tmp:
             if not o3d.t.io.write_point_cloud(str(tmp), cloud, write_ascii=False):
@@ -125,9 +129,11 @@ def _usual_permissions(path: Path) -> None:
     os.chmod(path, 0o666 & ~umask)
 
 
-def _ply_header(arrays: Mapping[str, NDArray], meta: Mapping[str, Any], n: int) -> tuple:
+def _ply_header(
+    arrays: Mapping[str, NDArray], meta: Mapping[str, Any], n: int, frame: str
+) -> tuple:
     lines = ["ply", "format binary_little_endian 1.0"]
-    lines.append("comment robot-line-scanner point cloud, base frame, units mm")
+    lines.append(f"comment robot-line-scanner point cloud, {frame} frame, units mm")
     for key, value in meta.items():
         text = json.dumps(value, default=str, separators=(",", ":"))
         lines.append(f"comment {key} {text}".replace("\n", " "))
@@ -165,9 +171,11 @@ def _ply_header(arrays: Mapping[str, NDArray], meta: Mapping[str, Any], n: int) 
     return "\n".join(lines) + "\n", fields, columns
 
 
-def _write_ply(target: Path, arrays: Mapping[str, NDArray], meta: Mapping[str, Any]) -> None:
+def _write_ply(
+    target: Path, arrays: Mapping[str, NDArray], meta: Mapping[str, Any], frame: str
+) -> None:
     n = int(arrays["positions"].shape[0])
-    header, fields, columns = _ply_header(arrays, meta, n)
+    header, fields, columns = _ply_header(arrays, meta, n, frame)
     record = np.empty(n, dtype=np.dtype(fields))
     for (name, _), col in zip(fields, columns):
         record[name] = col
