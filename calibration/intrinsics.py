@@ -32,7 +32,19 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from calibration.detection.observations import TargetObservation
-from calibration.intrinsics_adjust import PARAM_NAMES, _adjust
+from calibration.intrinsics_adjust import (
+    PARAM_NAMES,
+    _adjust,
+    camera_matrix,
+    intrinsics_covariance,
+)
+from calibration.intrinsics_model import (
+    DISTORTION_MODELS,
+    ModelSelection,
+    UncertaintyMap,
+    projection_uncertainty,
+    select_distortion_model,
+)
 from calibration.intrinsics_paper import MIN_VIEWS, PaperEstimate, _paper_variants, paper_intrinsics
 from scanner.core.conventions import make_transform
 
@@ -77,6 +89,13 @@ class IntrinsicsResult:
     paper : dict of str to PaperEstimate
         ``"diameter_ends"`` (the paper's method) and ``"all_rings"``, when computed.
     n_residuals : int
+    distortion_model : str
+        The distortion terms fitted (a key of ``DISTORTION_MODELS``, or "given" when the
+        caller held terms itself).
+    model_selection : ModelSelection or None
+        The held-out scores the model was chosen by (``distortion="auto"``).
+    uncertainty_map : UncertaintyMap or None
+        1-sigma projection uncertainty over the image, from the intrinsics' covariance.
     """
 
     K: NDArray
@@ -93,6 +112,9 @@ class IntrinsicsResult:
     rejected: list[tuple[int, str]] = field(default_factory=list)
     paper: dict[str, PaperEstimate] = field(default_factory=dict)
     n_residuals: int = 0
+    distortion_model: str = "full"
+    model_selection: ModelSelection | None = None
+    uncertainty_map: UncertaintyMap | None = None
 
     def quality(self) -> dict[str, object]:
         """JSON-ready figures for the calibration file's ``quality`` object."""
@@ -107,7 +129,15 @@ class IntrinsicsResult:
             "warnings": list(self.warnings),
             "rejected": [{"view": i, "reason": why} for i, why in self.rejected],
             "n_residuals": self.n_residuals,
+            "distortion_model": self.distortion_model,
         }
+        if self.model_selection is not None:
+            out["model_selection"] = self.model_selection.to_json()
+        if self.uncertainty_map is not None:
+            out["projection_uncertainty_px"] = {
+                "max": self.uncertainty_map.max_px,
+                "median": self.uncertainty_map.median_px,
+            }
         paper = {}
         for name, est in self.paper.items():
             paper[name] = {"ok": est.ok, "reason": est.reason, "K": est.K.tolist()}
@@ -140,6 +170,7 @@ def calibrate_intrinsics(
     f_scale_px: float | None = None,
     max_points_per_ring: int = 200,
     fixed: tuple[str, ...] = (),
+    distortion: str = "auto",
 ) -> IntrinsicsResult:
     """Calibrate the camera from observations of a planar target.
 
@@ -163,6 +194,11 @@ def calibrate_intrinsics(
     fixed : tuple of str
         Names from ``PARAM_NAMES`` held at their initial value (distortion terms at 0), e.g.
         ``("p1", "p2", "k3")`` for the two-term radial model of Zhang's published result.
+    distortion : str
+        ``"auto"`` (default): the distortion terms chosen on held-out views
+        (:func:`calibration.intrinsics_model.select_distortion_model`) unless ``fixed`` names
+        some; or a key of ``DISTORTION_MODELS`` (``"none"``, ``"k1"``, ``"k1k2"``,
+        ``"k1k2p1p2"``, ``"full"``).
 
     Returns
     -------
@@ -179,6 +215,11 @@ def calibrate_intrinsics(
         raise ValueError(f"fixed: expected names from {PARAM_NAMES}, got {unknown}")
     if method not in ("default", "paper"):
         raise ValueError(f"method: expected 'default' or 'paper', got {method!r}")
+    if distortion != "auto" and distortion not in DISTORTION_MODELS:
+        raise ValueError(
+            f"distortion: expected 'auto' or one of {', '.join(DISTORTION_MODELS)}, "
+            f"got {distortion!r}"
+        )
     w, h = (int(image_size[0]), int(image_size[1]))
     rejected: list[tuple[int, str]] = []
     used: list[int] = []
@@ -244,6 +285,18 @@ def calibrate_intrinsics(
     if len(obs) < MIN_VIEWS:
         raise ValueError(f"intrinsics: expected >= {MIN_VIEWS} views with a pose, got {len(obs)}")
     poses = np.asarray(poses0)
+    selection = None
+    if fixed:
+        model = "given"
+    elif distortion == "auto":
+        selection = select_distortion_model(obs, K0, poses)
+        model = selection.chosen
+    else:
+        model = distortion
+    if model != "given":
+        fixed = DISTORTION_MODELS[model]
+        for n in fixed:
+            dist0[PARAM_NAMES.index(n) - 4] = 0.0
     x, res, prob, sol = _adjust(obs, K0, dist0, poses, f_scale_px, max_points_per_ring, fixed)
 
     # -- outlier views
@@ -262,32 +315,27 @@ def calibrate_intrinsics(
         obs = [obs[j] for j in keep]
         used = [used[j] for j in keep]
         poses = x[9:].reshape(-1, 6)[keep]
-        K1 = np.array([[x[0], 0, x[2]], [0, x[1], x[3]], [0, 0, 1.0]])
+        K1 = camera_matrix(x)
         x, res, prob, sol = _adjust(obs, K1, x[4:9], poses, f_scale_px, max_points_per_ring, fixed)
 
     views = prob.residual_views()
     per_view = np.array([np.sqrt(np.mean(res[views == v] ** 2)) for v in range(len(obs))])
-    K = np.array([[x[0], 0, x[2]], [0, x[1], x[3]], [0, 0, 1.0]])
+    K = camera_matrix(x)
     dist = x[4:9].copy()
     poses = x[9:].reshape(-1, 6)
     cam_from_target = [make_transform(Rotation.from_rotvec(p[:3]), p[3:]) for p in poses]
 
     # -- uncertainty
-    JtJ, _ = prob.normal_equations(x, res, np.ones(len(res)))
-    dof = max(len(res) - x.size, 1)
-    sigma2 = float(np.sum(res**2) / dof)
     std: dict[str, float] = {}
     corr = np.full((9, 9), np.nan)
+    uncertainty = None
     try:
-        free = np.ones(x.size, bool)
-        free[[PARAM_NAMES.index(n) for n in fixed]] = False
-        cov = np.zeros((x.size, x.size))
-        cov[np.ix_(free, free)] = np.linalg.inv(JtJ[np.ix_(free, free)]) * sigma2
-        c9 = cov[:9, :9]
+        c9 = intrinsics_covariance(prob, x, res, fixed)
         sd = np.sqrt(np.maximum(np.diag(c9), 0))
         std = {n: float(v) for n, v in zip(PARAM_NAMES, sd)}
         with np.errstate(invalid="ignore", divide="ignore"):
             corr = c9 / np.outer(sd, sd)
+        uncertainty = projection_uncertainty(camera_matrix(x), x[4:9], c9, (w, h))
     except np.linalg.LinAlgError:
         warnings.append("normal matrix singular: parameters not all determined by these views")
     tilts = _view_tilts_deg(poses)
@@ -317,6 +365,9 @@ def calibrate_intrinsics(
         rejected=sorted(rejected),
         paper=paper,
         n_residuals=len(res),
+        distortion_model=model,
+        model_selection=selection,
+        uncertainty_map=uncertainty,
     )
 
 

@@ -18,10 +18,16 @@ from scipy.spatial.transform import Rotation
 
 from calibration.detection.observations import TargetObservation
 
-__all__ = ["PARAM_NAMES"]
+__all__ = ["PARAM_NAMES", "camera_matrix", "intrinsics_covariance"]
 
 #: The nine intrinsics, in the order of the adjustment's parameter vector (then 6 per view).
 PARAM_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+
+
+def camera_matrix(x: NDArray) -> NDArray:
+    """The camera matrix ``(3, 3)`` of a parameter vector (fx, fy, cx, cy first)."""
+    return np.array([[x[0], 0, x[2]], [0, x[1], x[3]], [0, 0, 1.0]])
+
 
 # Curve kinds of the adjustment's observations.
 _CIRCLE, _XLINE, _YLINE, _POINT = 0, 1, 2, 3
@@ -353,3 +359,23 @@ def _adjust(
         sol = _levenberg_marquardt(prob, sol.x, max(3.0 * sigma, 0.02), free)
     prob.update_psi(sol.x, iterations=3)
     return sol.x, prob.residuals(sol.x, update=False), prob, sol
+
+
+def intrinsics_covariance(
+    prob: _Problem, x: NDArray, res: NDArray, fixed: tuple[str, ...]
+) -> NDArray:
+    """Covariance ``(9, 9)`` of :data:`PARAM_NAMES` after an adjustment, marginal over the
+    views' poses (held terms: zero rows and columns), from J^T J and the residual variance.
+
+    Raises
+    ------
+    numpy.linalg.LinAlgError
+        The normal matrix is singular (the views do not determine every free parameter).
+    """
+    JtJ, _ = prob.normal_equations(x, res, np.ones(len(res)))
+    sigma2 = float(np.sum(res**2) / max(len(res) - x.size, 1))
+    free = np.ones(x.size, bool)
+    free[[PARAM_NAMES.index(n) for n in fixed]] = False
+    cov = np.zeros((x.size, x.size))
+    cov[np.ix_(free, free)] = np.linalg.inv(JtJ[np.ix_(free, free)]) * sigma2
+    return cov[:9, :9]

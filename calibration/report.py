@@ -17,6 +17,8 @@ import numpy as np
 from matplotlib.figure import Figure
 from numpy.typing import NDArray
 
+from calibration.intrinsics import IntrinsicsResult
+from calibration.intrinsics_model import UncertaintyMap
 from calibration.pipeline import CalibrationResult
 from scanner.formats import html as rep
 
@@ -100,6 +102,62 @@ def _plane_figure(result: CalibrationResult) -> Figure | None:
     return fig
 
 
+def _uncertainty_figure(umap: UncertaintyMap) -> Figure:
+    fig = Figure(figsize=(6.4, 4.6))
+    ax = fig.add_subplot(1, 1, 1)
+    extent = (0.0, float(umap.u_px[-1] + umap.u_px[0]), float(umap.v_px[-1] + umap.v_px[0]), 0.0)
+    shown = ax.imshow(umap.sigma_px, extent=extent, cmap="viridis", vmin=0.0)
+    levels = np.quantile(umap.sigma_px, [0.5, 0.9])
+    if levels[1] > levels[0] > 0:
+        uu, vv = np.meshgrid(umap.u_px, umap.v_px)
+        lines = ax.contour(uu, vv, umap.sigma_px, levels=levels, colors="white", linewidths=0.8)
+        ax.clabel(lines, fmt="%.3f px", fontsize=7)
+    fig.colorbar(shown, ax=ax, label="1-sigma projection uncertainty (px)")
+    ax.set_xlabel("u (px)")
+    ax.set_ylabel("v (px)")
+    fig.tight_layout()
+    return fig
+
+
+def _model_section(intr: IntrinsicsResult) -> str:
+    """How the distortion terms were chosen, and where the camera model is least certain."""
+    out = ""
+    sel = intr.model_selection
+    if sel is not None:
+        rows = [
+            (
+                s.name,
+                f"{s.held_out_rms_px:.4f}",
+                f"{s.fit_rms_px:.4f}",
+                f"{s.uncertainty_rms_px:.4f}",
+                "chosen" if s.name == sel.chosen else "",
+            )
+            for s in sel.scores
+        ]
+        out += (
+            rep.table(
+                [
+                    "distortion terms",
+                    "held-out RMS (px)",
+                    "fit RMS (px)",
+                    "uncertainty RMS (px)",
+                    "",
+                ],
+                rows,
+            )
+            + f"<p>{html.escape(sel.reason)} ({sel.folds}-fold, views held out in turn).</p>"
+        )
+    umap = intr.uncertainty_map
+    if umap is not None:
+        out += rep.figure(
+            _uncertainty_figure(umap),
+            f"Projection uncertainty over the image (1 sigma; median {umap.median_px:.3f} px, "
+            f"largest {umap.max_px:.3f} px): where it is high, add views whose target covers "
+            "that part of the image",
+        )
+    return out
+
+
 def _verdict_box(verdict: str, warnings: tuple[str, ...]) -> str:
     """The verdict as a coloured banner: green when good, red when poor, grey otherwise."""
     cls = {"good": "pass", "poor": "fail"}.get(verdict.split()[0].lower(), "na")
@@ -147,9 +205,11 @@ def write_calibration_report(
                 "cx (px)": _fmt(cal.K[0, 2], std.get("cx"), 3),
                 "cy (px)": _fmt(cal.K[1, 2], std.get("cy"), 3),
                 "dist (k1 k2 p1 p2 k3)": " ".join(f"{d:.5g}" for d in cal.dist),
+                "distortion terms fitted": intr.distortion_model,
                 "reprojection RMS (px)": _fmt(intr.rms_px, None, 4),
             }
-        ),
+        )
+        + _model_section(intr),
     )
     lpq = result.light_plane
     if lpq is None:
