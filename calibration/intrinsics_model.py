@@ -204,14 +204,15 @@ def select_distortion_model(
     # Bias: a model is adequate when its held-out error is not worse than the best held-out
     # error by more than one standard error of the paired per-view difference (the views
     # share the noise, so the pairing sees a consistent excess that the RMS alone hides) nor
-    # by more than 0.5 % of its mean square (differences below that are no lens's doing).
+    # by more than 0.5 % of its mean square (differences below that are no lens's doing);
+    # medians throughout, so that one held-out view whose pose fit ran away does not decide.
     best = min(scores, key=lambda s: s.held_out_rms_px)
     adequate = [s for s in scores if _paired_excess(s, best) <= 0.0]
     # Variance: of the adequate models, the one whose projection is best pinned over the image.
     chosen = min(adequate, key=lambda s: s.uncertainty_rms_px)
     reason = (
-        f"held-out RMS {chosen.held_out_rms_px:.4f} px (best {best.name} "
-        f"{best.held_out_rms_px:.4f} px, within one standard error), projection uncertainty "
+        f"held-out RMS {chosen.held_out_rms_px:.4f} px, not worse than the best held-out "
+        f"({best.name}, {best.held_out_rms_px:.4f} px) beyond one standard error; projection uncertainty "
         f"RMS {chosen.uncertainty_rms_px:.4f} px, the lowest of "
         f"{', '.join(s.name for s in adequate)}"
     )
@@ -224,12 +225,17 @@ _NEGLIGIBLE_EXCESS = 0.005
 
 def _paired_excess(score: ModelScore, best: ModelScore) -> float:
     """Mean per-view excess of squared held-out error over ``best``, less one standard error
-    (and less a negligible 0.5 % of the best's mean square): > 0 means really worse."""
+    (and less a negligible 0.5 % of the best's mean square): > 0 means really worse. A view
+    whose excess lies beyond ten robust standard deviations (its held-out pose fit ran away)
+    is left out, so that one view does not decide."""
     diff = score.per_view_px**2 - best.per_view_px**2
     if score is best or len(diff) < 2:
         return 0.0
-    se = float(np.std(diff, ddof=1) / np.sqrt(len(diff)))
-    floor = _NEGLIGIBLE_EXCESS * float(np.mean(best.per_view_px**2))
+    spread = 1.4826 * float(np.median(np.abs(diff - np.median(diff))))
+    if spread > 0:
+        diff = diff[np.abs(diff - np.median(diff)) <= 10.0 * spread]
+    se = float(np.std(diff, ddof=1) / np.sqrt(len(diff))) if len(diff) > 1 else 0.0
+    floor = _NEGLIGIBLE_EXCESS * float(np.median(best.per_view_px**2))
     return float(np.mean(diff)) - max(se, floor)
 
 

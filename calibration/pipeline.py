@@ -461,6 +461,11 @@ def calibrate_session(
             "rms_px": float(intr.rms_px),
             "std": {k: float(v) for k, v in intr.std.items()},
             "per_view_rms_px": {str(k): v for k, v in per_view.items()},
+            **{
+                k: v
+                for k, v in intr.quality().items()
+                if k in ("distortion_model", "model_selection", "projection_uncertainty_px")
+            },
         },
         "extrinsics": extrinsics_q,
         "light_plane": None if plane_res is None else plane_res.quality(),
