@@ -157,9 +157,16 @@ def select_distortion_model(
         return ModelSelection("k1", (), 0, f"{n} views: too few to hold any out; k1 only")
     fold_of = np.arange(n) % k
     size = image_size or tuple(observations[0].image_size)
+    # Every fit starts from one adjustment of all views with every term: the views' poses
+    # there are close to any candidate's, so no fit (held-out poses above all) starts far off.
+    x_all, _, _, _ = _adjust(observations, K0, np.zeros(5), poses0, None, max_points_per_ring)
+    K_start, poses_start = camera_matrix(x_all), x_all[9:].reshape(n, 6)
     scores = []
     for name in candidates:
         fixed = DISTORTION_MODELS[name]
+        dist_start = x_all[4:9].copy()
+        for term in fixed:
+            dist_start[PARAM_NAMES.index(term) - 4] = 0.0
         per_view = np.full(n, np.nan)
         fit_rms, sigma_ms = [], []
         for f in range(k):
@@ -167,9 +174,9 @@ def select_distortion_model(
             test = np.flatnonzero(fold_of == f)
             x, res, prob, _ = _adjust(
                 [observations[i] for i in train],
-                K0,
-                np.zeros(5),
-                poses0[train],
+                K_start,
+                dist_start,
+                poses_start[train],
                 None,
                 max_points_per_ring,
                 fixed,
@@ -185,7 +192,7 @@ def select_distortion_model(
             # The held-out views' poses, fitted with the intrinsics held (independent of
             # each other, so one adjustment fits them all).
             _, r, held, _ = _adjust(
-                [observations[i] for i in test], K, x[4:9], poses0[test], None,
+                [observations[i] for i in test], K, x[4:9], poses_start[test], None,
                 max_points_per_ring, PARAM_NAMES,
             )  # fmt: skip
             views = held.residual_views()
