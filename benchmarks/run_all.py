@@ -38,6 +38,12 @@ BENCHMARKS: list[tuple[str, str, list[str], list[str]]] = [
         ["--work", "{work}/calibration", "--cells", "modern"],
     ),
     (
+        "detection",
+        "Concentric-target detection over the randomised domain (issue #15)",
+        ["--views", "200", "--empty", "30", "--timing", "10"],
+        ["--views", "60", "--empty", "10", "--timing", "5"],
+    ),
+    (
         "calibrate_cli",
         "`scanner calibrate` on a 20-frame 1280x1024 session",
         ["--work", "{work}/calibrate_cli"],

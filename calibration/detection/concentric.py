@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import logging
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
@@ -47,13 +48,16 @@ from calibration.detection.concentric_rays import (
     _hough_lines,
     _label_rays,
     _line_from_hough,
-    _noise_threshold,
+    _sample,
+    _threshold_map,
 )
 from calibration.detection.concentric_rings import (
     ConcentricDetectorSettings,
     _conic_axes_ratio,
     _conic_normals,
+    _consistent_rings,
     _ellipse_ok,
+    _line_evidence,
     _min_spacing_px,
     _pencil_centre,
     _perimeter_px,
@@ -110,9 +114,13 @@ def detect_concentric(
     radii = np.asarray(target.ring_radii_mm, dtype=np.float64)
 
     kernel = max(9, min(h, w) // 40)
-    d, bg = _darkness(img, kernel)
-    thr = _noise_threshold(d)
-    mask = (d > thr).astype(np.uint8) * 255
+    # Coarse stage on a lightly smoothed image: noise and grain drop about threefold, a
+    # printed line keeps most of its darkness.
+    d, bg = _darkness(cv2.GaussianBlur(img, (0, 0), 1.0), kernel)
+    # Darkness over its local noise threshold: > 1 where a printed line may be.
+    z = d / _threshold_map(d, bg, 4 * kernel)
+    thr = 1.0
+    mask = (z > thr).astype(np.uint8) * 255
     lines = _hough_lines(mask, min_votes=int(0.08 * min(h, w)))
     if len(lines) < 2:
         return TargetObservation.failed("no pair of diameter lines found", size, KIND)
@@ -133,7 +141,7 @@ def detect_concentric(
             if not (0 <= c[0] < w and 0 <= c[1] < h):
                 continue
             axis_angles = [t1 + np.pi / 2, t1 - np.pi / 2, t2 + np.pi / 2, t2 - np.pi / 2]
-            per_ring, good = _label_rays(d, c, radii, thr, axis_angles)
+            per_ring, good = _label_rays(z, c, radii, thr, axis_angles)
             if best is None or good > best[0]:
                 best = (good, c, per_ring, (l1, l2), axis_angles)
     if best is None or best[0] < 12:
@@ -171,7 +179,9 @@ def detect_concentric(
     # -- line width in px estimate, for windows
     spacing_px = _min_spacing_px(conics, c)
     line_frac = target.line_width_mm / float(np.min(np.diff(radii)))
-    half_window = max(1.5, 1.6 * line_frac * spacing_px + 2.0)
+    # The window reaches the paper on both sides of a line but not the neighbouring rings.
+    line_px = line_frac * spacing_px
+    half_window = max(1.5, min(1.6 * line_px + 2.0, 0.45 * spacing_px), 0.5 * line_px + 1.0)
     # Finer darkness map now that the scale is known (kernel several line widths, < spacing).
     kernel2 = int(np.clip(4 * half_window + 3, 9, max(9, 0.8 * spacing_px)))
     if kernel2 != kernel:
@@ -210,8 +220,20 @@ def detect_concentric(
                 KIND,
             )
         # The refitted conics replace the coarse ones; the pencil gives the centre again.
+        # A ring whose conic is not a member of the spec's pencil (noise, a neighbour's
+        # points) is dropped rather than allowed to name wrong points.
         conics = {k: v[1] for k, v in rings.items()}
-        c_new = _pencil_centre(conics, radii, c)
+        keep = _consistent_rings(conics, radii)
+        rings = {k: rings[k] for k in keep}
+        conics = {k: conics[k] for k in keep}
+        if len(rings) < s.min_rings:
+            return TargetObservation.failed(
+                f"no ring pencil found: {len(rings)} ring conics agree with the spec's radius "
+                f"ratios, expected >= {s.min_rings}",
+                size,
+                KIND,
+            )
+        c_new = _pencil_centre(conics, radii, c, strict=True)
         if c_new is None:
             return TargetObservation.failed(
                 "no ring pencil found: refined ring conics disagree with the spec's radius ratios",
@@ -257,7 +279,23 @@ def detect_concentric(
         if len(pts) != 2:
             return TargetObservation.failed("diameter line misses the largest ring", size, KIND)
         ends.append(pts)
-    labelled = _label_by_marker(img, bg, target, center, ends, conics, radii, axis_lines)
+    ring_pts = np.vstack([r[0] for r in rings.values()])
+    line_dark = float(np.median(_sample(d, ring_pts[:, 0], ring_pts[:, 1])))
+    paper = float(np.median(_sample(bg, ring_pts[:, 0], ring_pts[:, 1])))
+    # Both diameters must be printed lines, not any two lines through the centre.
+    reach = float(np.max(np.linalg.norm(ring_pts - center, axis=1)))
+    for ln in axis_lines:
+        ev = _line_evidence(d, ln, center, reach, 2.0 * half_window + 2.0)
+        if ev < 0.3 * line_dark:
+            return TargetObservation.failed(
+                f"diameter line not printed: darkness {ev:.2f} on it against "
+                f"{line_dark:.2f} on the rings",
+                size,
+                KIND,
+            )
+    labelled = _label_by_marker(
+        img, bg, target, center, ends, conics, radii, axis_lines, line_dark, paper
+    )
     if isinstance(labelled, str):
         return TargetObservation.failed(labelled, size, KIND)
     ix, sign_x, sign_y, marker_px = labelled

@@ -107,8 +107,15 @@ def _label_by_marker(
     conics: dict[int, NDArray],
     radii: NDArray,
     axis_lines: list[NDArray],
+    line_darkness: float | None = None,
+    paper_level: float | None = None,
 ) -> tuple[int, float, float, NDArray] | str:
     """Decide which end is A by the orientation disc; C follows (z out of the face).
+
+    ``line_darkness`` (``1 - I / paper`` on the printed rings' centre lines, from this
+    image) scales what counts as dark: a disc of solid ink is at least as dark as a line,
+    whatever the print's contrast. ``paper_level`` (the background on the rings): a
+    candidate place whose surroundings are far darker is off the card.
 
     Returns (index of the x line in ``axis_lines``, sign of +x along the x line's direction,
     same for y, marker px) or a reason string.
@@ -164,18 +171,25 @@ def _label_by_marker(
         vin = _sample(img, inner[:, 0], inner[:, 1])
         bgv = _sample(bg, inner[:, 0], inner[:, 1])
         vout = _sample(img, outer[:, 0], outer[:, 1])
+        if paper_level is not None and float(np.median(vout)) < 0.5 * paper_level:
+            # Not on the card's paper (dark surroundings): no marker can be printed there.
+            scores.append(np.nan)
+            candidates.append((a, cc, mc))
+            continue
         ref = max(float(np.median(vout)), float(np.median(bgv)) * 0.5, 1e-6)
         # Every point inside the disc must be dark (the brightest decides), around it paper.
-        scores.append(1.0 - float(np.max(vin)) / ref)
+        # (the second brightest: one noisy sample does not decide)
+        scores.append(1.0 - float(np.sort(vin)[-2]) / ref)
         candidates.append((a, cc, mc))
     sc = np.asarray(scores, dtype=np.float64)
     if np.all(np.isnan(sc)):
         return "orientation marker not visible (outside the image for every labelling)"
     best = int(np.nanargmax(sc))
     others = np.delete(sc, best)
-    if sc[best] < 0.3:
+    dark = 1.0 if line_darkness is None else float(np.clip(line_darkness, 0.0, 1.0))
+    if sc[best] < min(0.3, 0.5 * dark):
         return f"orientation marker not visible (darkest candidate contrast {sc[best]:.2f})"
-    if np.any(np.isnan(others)) and sc[best] < 0.5:
+    if np.any(np.isnan(others)) and sc[best] < min(0.5, 0.8 * dark):
         return (
             "orientation marker ambiguous: a weak candidate while another candidate position "
             "lies outside the image"

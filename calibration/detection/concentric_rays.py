@@ -8,6 +8,10 @@ are labelled by the 1-D projectivity ``t = a r / (1 + b r)`` of the known radii.
 
 from __future__ import annotations
 
+import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
+
 import cv2
 import numpy as np
 from numpy.typing import NDArray
@@ -20,17 +24,47 @@ from calibration.detection.conics import intersect_lines
 
 
 def _darkness(img: NDArray, kernel_px: int) -> tuple[NDArray, NDArray]:
-    """Darkness ``1 - I / background`` (>= 0) and the background, closing with ``kernel_px``."""
+    """Darkness ``1 - I / background`` (>= 0) and the background, closing with ``kernel_px``.
+
+    Where the background is far below the lit paper (unlit or dark surroundings) no printed
+    line can be seen and the darkness is 0; the paper's level comes from this image
+    (:func:`_lit_level`), not from a constant.
+    """
     k = int(kernel_px) | 1
     se = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
     img32 = img.astype(np.float32)
     bg = cv2.morphologyEx(img32, cv2.MORPH_CLOSE, se)
     bg = np.maximum(bg, img32)
-    # Unlit or dark surroundings are not target paper: no printed line can be seen there.
-    lit = float(np.percentile(bg, 75))
     d = 1.0 - img32 / np.maximum(bg, 1e-6)
-    d[bg < 0.3 * lit] = 0.0
+    d[bg < 0.3 * _lit_level(bg)] = 0.0
     return np.clip(d, 0.0, 1.0).astype(np.float64), bg.astype(np.float64)
+
+
+def _lit_level(bg: NDArray) -> float:
+    """Level of the lit paper: the median background of the bright class of an Otsu split.
+
+    Dark surroundings may fill most of the frame (a percentile of the whole image would then
+    be their level); the Otsu split of the background separates them from the lit card.
+    """
+    top = float(np.percentile(bg, 99.9))
+    if top <= 0:
+        return 0.0
+    step = max(1, int(np.sqrt(bg.size / 65536)))
+    sub = bg[::step, ::step]
+    u8 = np.clip(sub * (255.0 / top), 0, 255).astype(np.uint8)
+    t, _ = cv2.threshold(u8, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    bright = sub[u8 > t]
+    return float(np.median(bright)) if bright.size else top
+
+
+def _live_mask(d: NDArray, bg: NDArray) -> NDArray:
+    """Pixels where a printed line could be seen: lit, not clipped at the white level."""
+    live = bg >= 0.3 * _lit_level(bg)
+    top = float(bg.max())
+    flat = bg >= top * (1 - 1e-6)
+    if flat.mean() > 0.01:  # a clipped (saturated) region: no noise there to learn from
+        live &= ~flat
+    return live
 
 
 def _bright_mask(img: NDArray, kernel_px: int) -> NDArray:
@@ -47,10 +81,63 @@ def _bright_mask(img: NDArray, kernel_px: int) -> NDArray:
     return bright.astype(np.float64)
 
 
-def _noise_threshold(d: NDArray) -> float:
-    med = float(np.median(d))
-    mad = float(np.median(np.abs(d - med))) * 1.4826
-    return max(0.06, med + 6.0 * mad)
+def _noise_threshold(d: NDArray, bg: NDArray | None = None) -> float:
+    """Darkness above which a pixel is not noise: median + 6 MAD over the lit target area.
+
+    The statistics are those of the lit, unclipped pixels (``bg`` given) only: dark or
+    saturated surroundings filling most of the frame carry no paper noise, and over the
+    whole image they would drive the MAD to zero.
+    """
+    sel = d[_live_mask(d, bg)] if bg is not None else d.ravel()
+    if sel.size < 100:
+        sel = d.ravel()
+    step = max(1, sel.size // 200_000)
+    sel = sel[::step]
+    med = float(np.median(sel))
+    mad = float(np.median(np.abs(sel - med))) * 1.4826
+    return max(0.02, med + 6.0 * mad)
+
+
+@contextmanager
+def _quiet() -> Iterator[None]:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        yield
+
+
+def _threshold_map(d: NDArray, bg: NDArray, tile_px: int) -> NDArray:
+    """Per-pixel darkness threshold: median + 6 MAD of ``d`` in tiles of the lit area.
+
+    Noise and paper grain differ between the card and its surroundings and over the card
+    (uneven light): each tile of about ``tile_px`` learns its own level from its lit,
+    unclipped pixels; tiles without enough of them take the whole lit area's
+    (:func:`_noise_threshold`). The tile grid is interpolated to every pixel.
+    """
+    h, w = d.shape
+    glob = _noise_threshold(d, bg)
+    live = _live_mask(d, bg)
+    t = max(16, int(tile_px))
+    ny, nx = max(1, h // t), max(1, w // t)
+    th, tw = (h // ny) // 2 * 2, (w // nx) // 2 * 2
+    # Every other pixel is enough for the statistics (and halves the work).
+    sub = np.where(live, d, np.nan)[: ny * th : 2, : nx * tw : 2]
+    blocks = sub.reshape(ny, sub.shape[0] // ny, nx, sub.shape[1] // nx).transpose(0, 2, 1, 3)
+    blocks = blocks.reshape(ny, nx, -1)
+    count = np.sum(np.isfinite(blocks), axis=2)
+    with np.errstate(all="ignore"), _quiet():
+        # Printed lines are outliers on the dark side: clip them out before the statistics
+        # (dense thick rings may cover half a tile).
+        # A first guess from the low quantiles holds while lines cover up to 3/4 of a tile.
+        p5, p25 = np.nanpercentile(blocks, [5.0, 25.0], axis=2)
+        sig = np.maximum(p25 - p5, 1e-4) / 0.97
+        med = p25 + 0.674 * sig
+        blocks = np.where(blocks > (med + 4.0 * sig)[:, :, None], np.nan, blocks)
+        med = np.nanmedian(blocks, axis=2)
+        mad = 1.4826 * np.nanmedian(np.abs(blocks - med[:, :, None]), axis=2)
+    thr = med + 6.0 * mad
+    enough = count >= 0.25 * blocks.shape[2]
+    thr = np.where(enough & np.isfinite(thr), np.maximum(thr, 0.02), glob).astype(np.float32)
+    return cv2.resize(thr, (w, h), interpolation=cv2.INTER_LINEAR).astype(np.float64)
 
 
 # --------------------------------------------------------------------------------------------

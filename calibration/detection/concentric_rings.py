@@ -160,8 +160,15 @@ def _min_spacing_px(conics: dict[int, NDArray], c: NDArray) -> float:
     return float(max(np.nanmin(gaps), 3.0))
 
 
-def _pencil_centre(conics: dict[int, NDArray], radii: NDArray, c0: NDArray) -> NDArray | None:
-    """Image of O from the pencil of ring conics; None if the radius ratios disagree."""
+def _pencil_centre(
+    conics: dict[int, NDArray], radii: NDArray, c0: NDArray, strict: bool = False
+) -> NDArray | None:
+    """Image of O from the pencil of ring conics; None if the radius ratios disagree.
+
+    ``strict`` (sub-pixel conics): each pair's ratio must also be nearer its own
+    ``(r_j / r_i)^2`` than to that of the pairs one ring in or out, so that rings labelled one
+    off (evenly spaced rings give close ratios) are refused, not accepted.
+    """
     keys = sorted(conics)
     centres, bad = [], 0
     for a in range(len(keys)):
@@ -173,7 +180,13 @@ def _pencil_centre(conics: dict[int, NDArray], radii: NDArray, c0: NDArray) -> N
                 bad += 1
                 continue
             expect = (radii[j] / radii[i]) ** 2
-            if not np.isfinite(ratio) or abs(ratio / expect - 1) > 0.05 + 0.02 * expect:
+            tol = 0.05 + 0.02 * expect
+            if strict:
+                for sh in (-1, 1):
+                    if 0 <= i + sh < len(radii) and 0 <= j + sh < len(radii):
+                        alt = (radii[j + sh] / radii[i + sh]) ** 2
+                        tol = min(tol, 0.4 * abs(alt / expect - 1))
+            if not np.isfinite(ratio) or abs(ratio / expect - 1) > tol:
                 bad += 1
                 continue
             centres.append(ctr[:2])
@@ -316,3 +329,61 @@ def _refine_axes(
         new_lines.append(line)
         new_pts.append(found)
     return new_lines, new_pts
+
+
+def _line_evidence(
+    d: NDArray, line: NDArray, c: NDArray, reach_px: float, offset_px: float
+) -> float:
+    """Median darkness on ``line`` minus that on its two parallels ``offset_px`` away.
+
+    Sampled every pixel within ``reach_px`` of ``c`` inside the image. The rings cross the
+    line and its parallels alike; a printed diameter adds its own darkness, a line through
+    the centre that is not a diameter adds nothing.
+    """
+    h, w = d.shape
+    ln = _unit_line(line)
+    n = ln[:2]
+    e = np.array([-n[1], n[0]])
+    foot = c - (float(n @ c) + ln[2]) * n
+    t = np.arange(-reach_px, reach_px + 0.5, 1.0)
+    pts = foot + t[:, None] * e
+    inside = (
+        (pts[:, 0] > offset_px + 1)
+        & (pts[:, 0] < w - offset_px - 2)
+        & (pts[:, 1] > offset_px + 1)
+        & (pts[:, 1] < h - offset_px - 2)
+    )
+    pts = pts[inside]
+    if len(pts) < 10:
+        return 0.0
+
+    def along(p: NDArray) -> NDArray:
+        return ndimage.map_coordinates(d, [p[:, 1], p[:, 0]], order=1)
+
+    side = 0.5 * (along(pts + offset_px * n) + along(pts - offset_px * n))
+    return float(np.median(along(pts) - side))
+
+
+def _pair_agrees(conics: dict[int, NDArray], radii: NDArray, i: int, j: int) -> bool:
+    """Whether rings i < j have the pencil ratio of the spec (strictly, see _pencil_centre)."""
+    try:
+        _, ratio = pencil_center(conics[i], conics[j])
+    except np.linalg.LinAlgError:
+        return False
+    expect = (radii[j] / radii[i]) ** 2
+    tol = 0.05 + 0.02 * expect
+    for sh in (-1, 1):
+        if 0 <= i + sh < len(radii) and 0 <= j + sh < len(radii):
+            tol = min(tol, 0.4 * abs((radii[j + sh] / radii[i + sh]) ** 2 / expect - 1))
+    return bool(np.isfinite(ratio) and abs(ratio / expect - 1) <= tol)
+
+
+def _consistent_rings(conics: dict[int, NDArray], radii: NDArray) -> list[int]:
+    """Rings whose conic agrees with most of the others as a member of the spec's pencil."""
+    keys = sorted(conics)
+    keep = []
+    for i in keys:
+        votes = [_pair_agrees(conics, radii, min(i, j), max(i, j)) for j in keys if j != i]
+        if votes and sum(votes) > 0.5 * len(votes):
+            keep.append(i)
+    return keep

@@ -1,0 +1,234 @@
+"""Concentric-target detection over the randomised domain (issue #15): rates per condition.
+
+Draws seeded views with :mod:`scanner.virtual_cell.randomised` (an independent pinhole
+renderer: any size, tilt 0-65 deg, line widths 1-8 px, blur, noise, grain, contrast,
+illumination, dark / cluttered / bright surroundings, border cuts, a laser stripe, JPEG,
+8 / 16 bits, other ring counts and marker places), runs :func:`detect_target` on each and
+compares with the truth. Prints Markdown tables:
+
+* detection and labelling rates on the views the spec calls detectable, per condition bin;
+* views without a target (surroundings only): false detections;
+* time per image for 1280x1024 images (mean, p95);
+* the refusal reasons.
+
+A detection is *labelled right* when every point it names (O, ring crossings ``r{k}+x``...)
+lies within ``max(1.5 px, 0.3 x ring spacing)`` of its true image: a wrong label moves a point
+by a ring spacing or a quarter turn.
+
+Usage::
+
+    python benchmarks/bench_detection.py [--views 200] [--empty 30] [--timing 10] [--seed 0]
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import time
+from collections import Counter
+from dataclasses import dataclass
+
+import numpy as np
+
+from calibration.detection.detect import detect_target
+from calibration.detection.observations import TargetObservation
+from scanner.virtual_cell.randomised import (
+    RenderedView,
+    ViewConditions,
+    draw_conditions,
+    render_view,
+)
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """One view's detection against its truth."""
+
+    view: RenderedView
+    detected: bool
+    labelled_right: bool
+    centre_err_px: float
+    worst_point_err_px: float
+    reason: str
+    seconds: float
+
+
+def label_tolerance_px(view: RenderedView) -> float:
+    """Largest error of a rightly labelled point, px."""
+    return max(1.5, 0.3 * view.min_spacing_px)
+
+
+def compare(view: RenderedView, obs: TargetObservation, seconds: float) -> Outcome:
+    """Compare a detection with the view's truth."""
+    if not obs:
+        return Outcome(view, False, False, np.nan, np.nan, obs.reason, seconds)
+    index = {n: i for i, n in enumerate(view.point_names)}
+    errs = []
+    for name, p in zip(obs.point_names, obs.points_px):
+        if name not in index:
+            errs.append(np.inf)
+            continue
+        errs.append(float(np.linalg.norm(p - view.points_px[index[name]])))
+    worst = max(errs) if errs else np.inf
+    centre = float(np.linalg.norm(obs.center_px - view.center_px))
+    return Outcome(view, True, worst < label_tolerance_px(view), centre, worst, "", seconds)
+
+
+def run_view(view: RenderedView) -> Outcome:
+    t0 = time.perf_counter()
+    obs = detect_target(view.image, view.spec)
+    return compare(view, obs, time.perf_counter() - t0)
+
+
+def draw_views(n: int, seed: int, has_target: bool = True) -> list[RenderedView]:
+    """``n`` seeded views: view i is drawn from ``default_rng([seed, i])``."""
+    views = []
+    for i in range(n):
+        rng = np.random.default_rng([seed, i, int(has_target)])
+        views.append(render_view(draw_conditions(rng, has_target=has_target), rng))
+    return views
+
+
+def _bin(value: float, edges: list[float], fmt: str = "{:g}") -> str:
+    for lo, hi in itertools.pairwise(edges):
+        if lo <= value < hi:
+            return f"{fmt.format(lo)}-{fmt.format(hi)}"
+    return f">= {fmt.format(edges[-1])}" if value >= edges[-1] else f"< {fmt.format(edges[0])}"
+
+
+def condition_bins(v: RenderedView) -> dict[str, str]:
+    """Each condition of a view, binned."""
+    c: ViewConditions = v.conditions
+    return {
+        "image size": f"{c.width}x{c.height}",
+        "target diameter / image height": _bin(c.target_diameter_frac, [0.15, 0.35, 0.6, 0.96]),
+        "tilt deg": _bin(c.tilt_deg, [0, 20, 45, 65.1]),
+        "line width px": _bin(c.line_width_px, [0, 2, 4, 8.5]),
+        "blur sigma px": _bin(c.blur_px, [0, 0.8, 1.4, 2.01]),
+        "noise grey levels": _bin(c.noise_grey, [0, 1, 3, 8.01]),
+        "contrast grey levels": _bin(c.contrast_grey, [0, 40, 100, 201]),
+        "line contrast / noise": _bin(v.line_snr, [0, 3, 6, 15, 1e9]).replace("-1e+09", "+"),
+        "paper grain": _bin(c.grain, [0, 0.015, 0.03, 0.041]),
+        "illumination gradient": _bin(c.gradient, [0, 0.2, 0.51]),
+        "surroundings": c.surroundings,
+        "surroundings' share of the frame": _bin(v.surround_frac, [0, 0.3, 0.6, 0.85, 1.01]),
+        "rings": _bin(c.ring_count, [4, 7, 11, 17], "{:.0f}"),
+        "ring spacing px": _bin(v.min_spacing_px, [0, 10, 20, 40, 1e9]).replace("-1e+09", "+"),
+        "border cut": "yes" if v.visible_rings < c.ring_count else "no",
+        "marker": (
+            "on +x axis"
+            if abs(c.marker_center_mm[1]) < 1e-9
+            else "off axis, outside"
+            if np.hypot(*c.marker_center_mm) > c.ring_max_diameter_mm / 2
+            else "between rings"
+        ),
+        "laser stripe": "yes" if c.laser else "no",
+        "jpeg": f"q{c.jpeg_quality}" if c.jpeg_quality else "none",
+        "bit depth": str(c.bit_depth),
+    }
+
+
+def rate_table(outcomes: list[Outcome]) -> str:
+    """Detection and labelling rates per condition bin, on detectable views."""
+    rows = ["| condition | bin | views | detected | labelled right | centre err px (median, max) |"]
+    rows.append("|---|---|---:|---:|---:|---:|")
+    groups: dict[tuple[str, str], list[Outcome]] = {}
+    for o in outcomes:
+        for cond, b in condition_bins(o.view).items():
+            groups.setdefault((cond, b), []).append(o)
+    order = list(condition_bins(outcomes[0].view))
+    for cond in order:
+        keys = sorted(k for k in groups if k[0] == cond)
+        for _, b in keys:
+            g = groups[(cond, b)]
+            det = sum(o.detected for o in g)
+            lab = sum(o.labelled_right for o in g)
+            errs = np.array([o.centre_err_px for o in g if o.detected])
+            err = f"{np.median(errs):.3f}, {errs.max():.3f}" if len(errs) else "-"
+            rows.append(
+                f"| {cond} | {b} | {len(g)} | {100 * det / len(g):.0f} % | "
+                f"{100 * lab / len(g):.0f} % | {err} |"
+            )
+    return "\n".join(rows)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--views", type=int, default=200, help="views with a target")
+    parser.add_argument("--empty", type=int, default=30, help="views without a target")
+    parser.add_argument("--timing", type=int, default=10, help="1280x1024 views timed")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+
+    outcomes = [run_view(v) for v in draw_views(args.views, args.seed)]
+    good = [o for o in outcomes if o.view.detectable]
+    not_det = [o for o in outcomes if not o.view.detectable]
+    n_det = sum(o.detected for o in good)
+    n_lab = sum(o.labelled_right for o in good)
+    wrong = [o for o in outcomes if o.detected and not o.labelled_right]
+    print(f"### Randomised domain, seed {args.seed}: {args.views} views with a target\n")
+    print(
+        f"Detectable by the spec's rules: {len(good)}; detected {n_det} "
+        f"({100 * n_det / max(len(good), 1):.1f} %), labelled right {n_lab} "
+        f"({100 * n_lab / max(len(good), 1):.1f} %). Wrong labellings (any view): {len(wrong)}. "
+        f"Not detectable: {len(not_det)} "
+        f"({', '.join(f'{k}: {n}' for k, n in Counter(o.view.why_not.split(' ')[0] + ' ' + o.view.why_not.split(' ')[1] for o in not_det).most_common())}); "
+        f"of these detected (and labelled right): {sum(o.detected for o in not_det)} "
+        f"({sum(o.labelled_right for o in not_det)}).\n"
+    )
+    if good:
+        errs = np.array([o.centre_err_px for o in good if o.detected])
+        if len(errs):
+            print(
+                f"Centre error on detected views: median {np.median(errs):.3f} px, "
+                f"p95 {np.percentile(errs, 95):.3f} px, max {errs.max():.3f} px.\n"
+            )
+        print(rate_table(good) + "\n")
+    empty = [run_view(v) for v in draw_views(args.empty, args.seed, has_target=False)]
+    false_pos = sum(o.detected for o in empty)
+    kinds = Counter(o.view.conditions.surroundings for o in empty)
+    print(
+        f"### Views without a target: {len(empty)} "
+        f"({', '.join(f'{k} {n}' for k, n in sorted(kinds.items()))}): "
+        f"false detections {false_pos}\n"
+    )
+    # Timing on 1280x1024 views.
+    times = []
+    i = 0
+    while len(times) < args.timing and i < 50 * max(args.timing, 1):
+        rng = np.random.default_rng([args.seed, 10_000 + i])
+        i += 1
+        c = draw_conditions(rng)
+        if (c.width, c.height) != (1280, 1024):
+            continue
+        times.append(run_view(render_view(c, rng)).seconds)
+    if times:
+        t = np.asarray(times)
+        print(
+            f"### Time per 1280x1024 image ({len(t)} views, one process)\n\n"
+            f"| mean s | p95 s | max s |\n|---:|---:|---:|\n"
+            f"| {t.mean():.3f} | {np.percentile(t, 95):.3f} | {t.max():.3f} |\n"
+        )
+    reasons = Counter(o.reason for o in outcomes + empty if not o.detected)
+    print("### Refusal reasons (all views)\n")
+    print("| reason | views (detectable) | views (not detectable) |\n|---|---:|---:|")
+    for reason, _ in reasons.most_common():
+        a = sum(1 for o in good if not o.detected and o.reason == reason)
+        b = sum(1 for o in not_det + empty if not o.detected and o.reason == reason)
+        print(f"| {reason} | {a} | {b} |")
+    if wrong:
+        print(
+            "\nWrong labellings (view index): "
+            + ", ".join(str(next(i for i, x in enumerate(outcomes) if x is o)) for o in wrong)
+        )
+    failed = [o for o in good if not o.labelled_right]
+    if failed:
+        print("\nDetectable views missed or mislabelled (view index in the seeded draw):\n")
+        for o in failed:
+            idx = next(i for i, x in enumerate(outcomes) if x is o)
+            print(f"- view {idx}: {o.reason or f'worst point {o.worst_point_err_px:.1f} px'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
