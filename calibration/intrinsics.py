@@ -285,18 +285,14 @@ def calibrate_intrinsics(
     if len(obs) < MIN_VIEWS:
         raise ValueError(f"intrinsics: expected >= {MIN_VIEWS} views with a pose, got {len(obs)}")
     poses = np.asarray(poses0)
-    selection = None
-    if fixed:
-        model = "given"
-    elif distortion == "auto":
-        selection = select_distortion_model(obs, K0, poses)
-        model = selection.chosen
-    else:
-        model = distortion
-    if model != "given":
-        fixed = DISTORTION_MODELS[model]
-        for n in fixed:
-            dist0[PARAM_NAMES.index(n) - 4] = 0.0
+    # Outlier views are found first, with all distortion terms free where the model is to be
+    # chosen: a mislabelled view left in would decide the held-out comparison on its own.
+    auto = not fixed and distortion == "auto"
+    model = "given" if fixed else distortion
+    if not fixed and not auto:
+        fixed = DISTORTION_MODELS[distortion]
+    for n in fixed:
+        dist0[PARAM_NAMES.index(n) - 4] = 0.0
     x, res, prob, sol = _adjust(obs, K0, dist0, poses, f_scale_px, max_points_per_ring, fixed)
 
     # -- outlier views
@@ -317,6 +313,19 @@ def calibrate_intrinsics(
         poses = x[9:].reshape(-1, 6)[keep]
         K1 = camera_matrix(x)
         x, res, prob, sol = _adjust(obs, K1, x[4:9], poses, f_scale_px, max_points_per_ring, fixed)
+
+    selection = None
+    if auto:
+        poses = x[9:].reshape(-1, 6)
+        selection = select_distortion_model(obs, camera_matrix(x), poses)
+        model = selection.chosen
+        fixed = DISTORTION_MODELS[model]
+        dist1 = x[4:9].copy()
+        for n in fixed:
+            dist1[PARAM_NAMES.index(n) - 4] = 0.0
+        x, res, prob, sol = _adjust(
+            obs, camera_matrix(x), dist1, poses, f_scale_px, max_points_per_ring, fixed
+        )
 
     views = prob.residual_views()
     per_view = np.array([np.sqrt(np.mean(res[views == v] ** 2)) for v in range(len(obs))])
