@@ -123,8 +123,8 @@ def _ransac(
     options: AlignOptions,
 ) -> o3d.pipelines.registration.RegistrationResult:
     return _REG.registration_ransac_based_on_feature_matching(
-            cloud,
-            nominal,
+        cloud,
+        nominal,
         cloud_f,
         nominal_f,
         mutual_filter=mutual,

@@ -66,7 +66,9 @@ class NominalSurface:
     def corners(self) -> NDArray[np.float64]:
         """The 8 corners ``(8, 3)`` of the nominal's bounding box (its extremities)."""
         lo, hi = self.lower, self.upper
-        return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        return np.array(
+            [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+        )
 
     def closest(self, points_nominal: NDArray) -> Closest:
         """Closest surface points of ``points_nominal`` ``(N, 3)`` and their signed distances."""
@@ -86,11 +88,4 @@ class NominalSurface:
 
     def sample(self, count: int, rng: np.random.Generator) -> tuple[NDArray, NDArray]:
         """``count`` points uniform by area and their outward normals, each ``(count, 3)``."""
-        areas = self.mesh.face_areas()
-        faces = rng.choice(len(areas), size=count, p=areas / areas.sum())
-        u, v = rng.random(count), rng.random(count)
-        flip = u + v > 1
-        u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
-        tri = self.mesh.vertices[self.mesh.triangles[faces]]
-        points = tri[:, 0] + u[:, None] * (tri[:, 1] - tri[:, 0]) + v[:, None] * (tri[:, 2] - tri[:, 0])
-        return points, self.face_normals[faces]
+        return self.mesh.sample_surface(count, rng)

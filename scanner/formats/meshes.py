@@ -50,6 +50,21 @@ class TriangleMesh:
         v = self.vertices[self.triangles]
         return 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
 
+    def sample_surface(
+        self, count: int, rng: np.random.Generator
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """``count`` points uniform by area and their outward normals, each ``(count, 3)``."""
+        areas = self.face_areas()
+        faces = rng.choice(len(areas), size=count, p=areas / areas.sum())
+        u, v = rng.random(count), rng.random(count)
+        flip = u + v > 1
+        u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
+        tri = self.vertices[self.triangles[faces]]
+        points = (
+            tri[:, 0] + u[:, None] * (tri[:, 1] - tri[:, 0]) + v[:, None] * (tri[:, 2] - tri[:, 0])
+        )
+        return points, self.face_normals()[faces]
+
     def to_open3d(self) -> o3d.geometry.TriangleMesh:
         mesh = o3d.geometry.TriangleMesh(
             o3d.utility.Vector3dVector(self.vertices),
@@ -87,7 +102,8 @@ def read_mesh(path: str | os.PathLike[str]) -> TriangleMesh:
     triangles = np.asarray(mesh.triangles, dtype=np.int64)
     if len(triangles) == 0 or len(vertices) < 3:
         raise InputError(
-            p, f"expected a triangle mesh, got {len(vertices)} vertices and {len(triangles)} triangles"
+            p,
+            f"expected a triangle mesh, got {len(vertices)} vertices and {len(triangles)} triangles",
         )
     if not np.all(np.isfinite(vertices)):
         raise InputError(p, "expected finite vertex coordinates, got NaN or inf")

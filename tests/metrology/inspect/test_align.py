@@ -14,14 +14,14 @@ from metrology.inspect.align import (
     rps_frame,
 )
 from metrology.inspect.surface import NominalSurface
-from tests.metrology.inspect.parts import boss_part, box_mesh, scan_of
+from scanner.virtual_cell.parts import boss_part, box_mesh, pinned_block, scan_part
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_best_fit_recovers_the_pose_within_10_um_at_the_extremities(seed: int) -> None:
     rng = np.random.default_rng(seed)
     mesh = boss_part()
-    scan = scan_of(mesh, rng, count=80_000, stray_share=0.005)
+    scan = scan_part(mesh, rng, count=80_000, stray_share=0.005)
     surface = NominalSurface(mesh)
     found = best_fit(scan.points_cloud, surface, AlignOptions(seed=seed))
     assert found, found.warnings
@@ -36,17 +36,29 @@ def test_best_fit_recovers_the_pose_within_10_um_at_the_extremities(seed: int) -
 def test_a_box_is_ambiguous_and_says_so() -> None:
     rng = np.random.default_rng(5)
     mesh = box_mesh((100.0, 60.0, 30.0))
-    scan = scan_of(mesh, rng, count=40_000)
+    scan = scan_part(mesh, rng, count=40_000)
     found = best_fit(scan.points_cloud, NominalSurface(mesh), AlignOptions(seed=5))
     assert found.ambiguous
     assert not found
     assert any("ambiguous" in w for w in found.warnings)
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_small_pin_tells_the_right_pose_of_a_nearly_symmetric_block(seed: int) -> None:
+    rng = np.random.default_rng(10 + seed)
+    mesh = pinned_block()
+    scan = scan_part(mesh, rng, count=80_000)
+    surface = NominalSurface(mesh)
+    found = best_fit(scan.points_cloud, surface, AlignOptions(seed=seed))
+    assert found, found.warnings
+    error = pose_distance_mm(found.nominal_from_cloud, scan.nominal_from_cloud, surface.corners())
+    assert error < 0.01
+
+
 def test_best_fit_from_a_given_start_is_a_local_fit() -> None:
     rng = np.random.default_rng(3)
     mesh = boss_part()
-    scan = scan_of(mesh, rng, count=30_000)
+    scan = scan_part(mesh, rng, count=30_000)
     surface = NominalSurface(mesh)
     start = scan.nominal_from_cloud.copy()
     start[:3, 3] += [0.8, -0.5, 0.3]

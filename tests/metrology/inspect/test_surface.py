@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from metrology.inspect.surface import NominalSurface
-from tests.metrology.inspect.parts import box_mesh
+from scanner.virtual_cell.parts import box_mesh
 
 
 def _box_signed_distance(p: np.ndarray, size: np.ndarray) -> np.ndarray:

@@ -10,7 +10,7 @@ import pytest
 
 from scanner.core.fileio import InputError
 from scanner.formats.meshes import TriangleMesh, read_mesh, write_mesh
-from tests.metrology.inspect.parts import box_mesh
+from scanner.virtual_cell.parts import box_mesh
 
 
 @pytest.mark.parametrize(

@@ -1,0 +1,128 @@
+"""Nominal parts and simulated scans of them, with their truth (for inspection tests, the
+inspection benchmark and trying ``scanner inspect`` without a part at hand).
+
+A scan here is the cloud a well-calibrated scanner would give: points on the faces a sensor
+above sees (the top and the sides), Gaussian noise along the surface normal, optional stray
+points off the surface and an optional smooth bump (a known form error), all moved into an
+arbitrary cloud frame. The truth is ``nominal_from_cloud`` and each point's true deviation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import open3d as o3d
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from scanner.formats.meshes import TriangleMesh
+
+__all__ = ["PartScan", "boss_part", "box_mesh", "pinned_block", "random_pose", "scan_part"]
+
+
+def _from_open3d(mesh: o3d.geometry.TriangleMesh) -> TriangleMesh:
+    return TriangleMesh(np.asarray(mesh.vertices), np.asarray(mesh.triangles).astype(np.int32))
+
+
+def box_mesh(size_mm: tuple[float, float, float] = (100.0, 60.0, 30.0)) -> TriangleMesh:
+    """A closed box from the origin to ``size_mm``, outward normals."""
+    return _from_open3d(o3d.geometry.TriangleMesh.create_box(*size_mm))
+
+
+def boss_part() -> TriangleMesh:
+    """A 100 x 60 x 30 mm block with a cylindrical boss (r 8, h 20) off its centre: no symmetry."""
+    boss = o3d.geometry.TriangleMesh.create_cylinder(8, 20, resolution=120)
+    boss.translate((70, 20, 35))
+    return _from_open3d(o3d.geometry.TriangleMesh.create_box(100, 60, 30) + boss)
+
+
+def pinned_block(pin_radius_mm: float = 2.5, pin_height_mm: float = 3.0) -> TriangleMesh:
+    """A 120 x 80 x 25 mm block with one small pin near a corner of its top.
+
+    Nearly symmetric: without the pin the block fits itself in four poses on its top face, so
+    the pin alone tells the alignment which one is right.
+    """
+    pin = o3d.geometry.TriangleMesh.create_cylinder(pin_radius_mm, pin_height_mm, resolution=60)
+    pin.translate((100.0, 62.0, 25.0 + pin_height_mm / 2))
+    return _from_open3d(o3d.geometry.TriangleMesh.create_box(120, 80, 25) + pin)
+
+
+@dataclass(frozen=True)
+class PartScan:
+    """A simulated scan and its truth.
+
+    Attributes
+    ----------
+    points_cloud : ndarray, shape (N, 3)
+        The points in the cloud frame, mm.
+    nominal_from_cloud : ndarray, shape (4, 4)
+        The true pose of the cloud in the nominal frame.
+    true_deviation_mm : ndarray, shape (N,)
+        The form error put into each point (the bump), noise and strays excluded.
+    stray : ndarray, shape (N,), bool
+        The points moved 0.5-3 mm off the surface.
+    """
+
+    points_cloud: NDArray[np.float64]
+    nominal_from_cloud: NDArray[np.float64]
+    true_deviation_mm: NDArray[np.float64]
+    stray: NDArray[np.bool_]
+
+
+def random_pose(rng: np.random.Generator) -> NDArray[np.float64]:
+    """Any yaw, tilts up to 10 deg, up to 500 mm off: a ``cloud_from_nominal``."""
+    pose = np.eye(4)
+    angles = [rng.uniform(-180, 180), rng.uniform(-10, 10), rng.uniform(-10, 10)]
+    pose[:3, :3] = Rotation.from_euler("zyx", angles, degrees=True).as_matrix()
+    pose[:3, 3] = rng.uniform(-500, 500, 3)
+    return pose
+
+
+def scan_part(
+    mesh: TriangleMesh,
+    rng: np.random.Generator,
+    *,
+    count: int = 60_000,
+    noise_mm: float = 0.02,
+    stray_share: float = 0.0,
+    bump: tuple[NDArray[np.float64], float, float] | None = None,
+) -> PartScan:
+    """Simulate a scan of ``mesh``.
+
+    Parameters
+    ----------
+    mesh : TriangleMesh
+        The nominal part, mm.
+    rng : numpy.random.Generator
+        The only source of randomness (sampling, noise, strays, pose).
+    count : int
+        Points drawn on the whole surface before the faces facing down are dropped.
+    noise_mm : float
+        Standard deviation of the noise along the surface normal.
+    stray_share : float
+        Share of the points moved 0.5-3 mm off the surface, outwards.
+    bump : (centre_nominal (3,), amplitude_mm, sigma_mm), optional
+        A Gaussian form error along the normal.
+
+    Returns
+    -------
+    PartScan
+    """
+    p, n = mesh.sample_surface(count, rng)
+    seen = n[:, 2] > -0.5
+    p, n = p[seen], n[seen]
+    true = np.zeros(len(p))
+    if bump is not None:
+        centre, amplitude, sigma = bump
+        true = amplitude * np.exp(-np.sum((p - centre) ** 2, axis=1) / (2 * sigma**2))
+    p = p + n * (true + rng.normal(0.0, noise_mm, len(p)))[:, None]
+    stray = np.zeros(len(p), bool)
+    n_stray = int(stray_share * len(p))
+    if n_stray:
+        pick = rng.choice(len(p), n_stray, replace=False)
+        p[pick] += n[pick] * rng.uniform(0.5, 3.0, n_stray)[:, None]
+        stray[pick] = True
+    cloud_from_nominal = random_pose(rng)
+    cloud = p @ cloud_from_nominal[:3, :3].T + cloud_from_nominal[:3, 3]
+    return PartScan(cloud, np.linalg.inv(cloud_from_nominal), true, stray)
