@@ -18,6 +18,7 @@ The names of a job folder's artefacts are declared in :class:`scanner.formats.la
 from __future__ import annotations
 
 import hashlib
+import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
@@ -25,6 +26,8 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Generic, Literal, TypeVar
 
+import numpy as np
+import open3d as o3d
 from numpy.typing import NDArray
 
 from calibration.pipeline import CalibrationResult, calibrate_session
@@ -32,6 +35,10 @@ from calibration.report import write_calibration_report
 from metrology.acceptance import AcceptanceResult, load_acceptance_spec, run_acceptance
 from metrology.ef_check import EFCheckResult, EFTolerances, run_ef_check
 from metrology.ef_report import write_ef_report
+from metrology.inspect.inspect import inspect_cloud
+from metrology.inspect.report import write_inspection_report
+from metrology.inspect.result import InspectionResult
+from metrology.inspect.spec import load_inspection_spec
 from metrology.measure import MeasurementReport, measure_cloud
 from metrology.plan import load_plan
 from metrology.report import write_acceptance_report, write_measurement_report
@@ -48,8 +55,9 @@ from scanner.formats.calibration_file import (
     read_calibration,
     write_calibration,
 )
-from scanner.formats.clouds import FORMATS, read_points
+from scanner.formats.clouds import FORMATS, read_points, write_cloud
 from scanner.formats.layout import report_beside
+from scanner.formats.meshes import read_mesh
 from scanner.formats.session import read_session
 from scanner.scanning.pipeline import ScanOptions, ScanResult, check_scan_inputs, scan_session
 from scanner.virtual_cell.simulate import simulate_cell
@@ -58,6 +66,7 @@ from scanner.virtual_cell.truth import CellTruth
 __all__ = [
     "CalibrateRun",
     "CheckRun",
+    "InspectRun",
     "Judged",
     "ReportFiles",
     "ScanRun",
@@ -65,6 +74,7 @@ __all__ = [
     "acceptance",
     "calibrate",
     "check",
+    "inspect",
     "measure",
     "provenance",
     "scan",
@@ -171,6 +181,7 @@ def calibrate(
     report: Path | Literal["beside"] | None = "beside",
     method: Literal["default", "paper"] = "default",
     refine_intrinsics: bool = False,
+    laser_origin_cam_mm: tuple[float, float, float] | None = None,
     progress: bool = False,
     on_stage: Callable[[str], None] | None = None,
 ) -> CalibrateRun:
@@ -184,12 +195,17 @@ def calibrate(
         The calibration file to write (JSON).
     report : path, None or "beside"
         The HTML report: beside ``out`` (same name, ``.html``) by default, ``None`` for none.
+    laser_origin_cam_mm : tuple of float, optional
+        The laser fan's apex in the camera frame (mm) from the sensor's drawing: written as
+        ``laser_origin_cam``; it must lie on the calibrated light plane (within 5 mm).
     """
     out = Path(out)
     _require_suffix(out, (".json",), "--out")
     report_path = report_beside(out) if report == "beside" else report
     outputs = [out] + ([report_path] if report_path is not None else [])
     check_outputs_apart([session_dir], outputs)
+    if laser_origin_cam_mm is not None and not all(math.isfinite(v) for v in laser_origin_cam_mm):
+        raise ValueError(f"--laser-origin-mm: expected finite numbers, got {laser_origin_cam_mm}")
     session = read_session(session_dir)
     result = calibrate_session(
         session,
@@ -203,6 +219,18 @@ def calibrate(
     calibration = replace(
         result.calibration, quality=replace(result.calibration.quality, record=record)
     )
+    if laser_origin_cam_mm is not None:
+        origin = np.asarray(laser_origin_cam_mm, dtype=np.float64)
+        plane = calibration.light_plane
+        if plane is None:
+            raise ValueError("--laser-origin-mm: the session gave no light plane to put it on")
+        off = abs(float(plane.normal @ origin + plane.d))
+        if off > 5.0:
+            raise ValueError(
+                f"--laser-origin-mm: expected a point on the calibrated light plane, got one "
+                f"{off:.1f} mm off it (camera frame, mm?)"
+            )
+        calibration = replace(calibration, laser_origin_cam=origin)
     result = replace(result, calibration=calibration)
     with commit_together() as staged:
         write_calibration(staged(out), calibration)
@@ -422,6 +450,92 @@ def acceptance(
         "acceptance", cloud_path, spec, out, calibration_path, _accept, write_acceptance_report
     )
     return Judged(result, files)
+
+
+# --------------------------------------------------------------------------------------------
+# scan-to-CAD inspection
+
+
+@dataclass(frozen=True)
+class InspectRun:
+    """A cloud inspected against its nominal mesh: the result and the files written."""
+
+    result: InspectionResult
+    out_path: Path
+    deviations_path: Path | None
+    report_path: Path | None
+
+
+def inspect(
+    cloud_path: Path,
+    nominal_path: Path,
+    out: Path,
+    *,
+    deviations: Path | None = None,
+    spec: str | Path = "default",
+    report: Path | Literal["beside"] | None = "beside",
+) -> InspectRun:
+    """Align a cloud to its nominal mesh and judge each point's deviation (contract section 5).
+
+    Parameters
+    ----------
+    cloud_path : path
+        The scan (PLY, PCD, E57 or a point list), any frame, mm.
+    nominal_path : path
+        The nominal mesh (STL, PLY, OBJ), the part's frame, mm.
+    out : path
+        ``RESULT.json`` (``scan-inspection/1``).
+    deviations : path, optional
+        ``DEV.ply``: every point in the nominal's frame with ``deviation_mm`` and ``outlier``.
+    spec : str or path
+        Inspection spec (bands, regions, sections, alignment): a TOML path or the name of one
+        in ``configs/inspect`` (``default``: +-0.1 mm).
+    report : path, None or "beside"
+        The HTML report: beside ``out`` by default, ``None`` for none.
+    """
+    out = Path(out)
+    _require_suffix(out, (".json",), "--out")
+    if deviations is not None:
+        _require_suffix(Path(deviations), (".ply",), "--deviations")
+    report_path = report_beside(out) if report == "beside" else report
+    spec_path = resolve_config(spec, "inspect")
+    outputs = [out, *(p for p in (deviations, report_path) if p is not None)]
+    check_outputs_apart([cloud_path, nominal_path, spec_path], outputs)
+    inspection_spec = load_inspection_spec(spec_path)
+    nominal = read_mesh(nominal_path)
+    points_cloud, _ = read_points(cloud_path)
+    result = inspect_cloud(points_cloud, nominal, inspection_spec)
+    result.nominal_path = str(nominal_path)
+    result.cloud_path = str(cloud_path)
+    result.spec_path = str(spec_path)
+    result.provenance = provenance(
+        "inspect", {"cloud": Path(cloud_path), "nominal": Path(nominal_path), "spec": spec_path}
+    )
+    with commit_together() as staged:
+        write_json_atomic(staged(out), result.to_json())
+        if deviations is not None:
+            write_deviations(staged(Path(deviations)), result)
+        if report_path is not None:
+            write_inspection_report(result, staged(report_path))
+    return InspectRun(result, out, deviations, report_path)
+
+
+def write_deviations(path: Path, result: InspectionResult) -> Path:
+    """``DEV.ply``: every evaluated point (nominal frame), ``deviation_mm``, ``outlier``."""
+    cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(result.points_nominal))
+    cloud.point["deviation_mm"] = o3d.core.Tensor(
+        result.deviation_mm.astype(np.float32).reshape(-1, 1)
+    )
+    cloud.point["outlier"] = o3d.core.Tensor(result.outlier.astype(np.uint8).reshape(-1, 1))
+    meta = {
+        "inspection": {
+            "nominal": result.nominal_path,
+            "cloud": result.cloud_path,
+            "verdict": result.verdict,
+        },
+        "provenance": result.provenance,
+    }
+    return write_cloud(path, cloud, meta, frame="nominal")
 
 
 # --------------------------------------------------------------------------------------------

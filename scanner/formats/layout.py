@@ -44,6 +44,8 @@ class JobLayout:
     cloud: Path
     measure: Path
     acceptance: Path
+    inspection: Path
+    deviations: Path
     summary: Path
     index: Path
 
@@ -62,6 +64,8 @@ class JobLayout:
             cloud=r / "cloud.ply",
             measure=r / "measure.json",
             acceptance=r / "acceptance.json",
+            inspection=r / "inspect.json",
+            deviations=r / "deviations.ply",
             summary=r / "summary.json",
             index=r / "index.html",
         )

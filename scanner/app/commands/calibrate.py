@@ -43,6 +43,15 @@ def register(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="let the hand-eye adjustment refine the intrinsics too",
     )
+    p.add_argument(
+        "--laser-origin-mm",
+        type=float,
+        nargs=3,
+        default=None,
+        metavar=("X", "Y", "Z"),
+        help="apex of the laser fan in the camera frame, mm, from the sensor's drawing: written "
+        "to the file as laser_origin_cam (scanning uses it for each point's illumination angle)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
 
@@ -71,6 +80,7 @@ def run(args: argparse.Namespace) -> int:
         report=report,  # type: ignore[arg-type]
         method=args.method,
         refine_intrinsics=args.refine_intrinsics,
+        laser_origin_cam_mm=None if args.laser_origin_mm is None else tuple(args.laser_origin_mm),
         progress=not args.quiet and sys.stderr.isatty(),
         on_stage=stage,
     )

@@ -185,18 +185,28 @@ class CalibrationGate:
 
 @dataclass(frozen=True)
 class Recipe:
-    """A scan job selected by register 3: which inspection plan, optionally which cell."""
+    """A scan job selected by register 3: which inspection plan and/or nominal mesh,
+    optionally which cell."""
 
     number: int
     name: str
-    #: Inspection plan: a ``configs/plans`` name or a path.
-    plan: str
+    #: Inspection plan: a ``configs/plans`` name or a path; empty for none.
+    plan: str = ""
     #: Virtual cell to scan in (virtual source only); empty means ``[source] cell``.
     cell: str = ""
+    #: Nominal mesh (STL, PLY, OBJ) to inspect the scan against (``scanner inspect``); empty
+    #: for none. Relative paths are resolved against the service's working directory.
+    nominal: str = ""
+    #: Inspection spec with the nominal: a ``configs/inspect`` name or a path.
+    inspect_spec: str = "default"
 
     def __post_init__(self) -> None:
         if not 1 <= self.number <= 65535:
             raise ValueError(f"number: expected 1..65535, got {self.number}")
+        if not self.plan and not self.nominal:
+            raise ValueError(
+                "plan: expected an inspection plan, a nominal mesh or both, got neither"
+            )
 
 
 #: The name of the job runner that runs the real stages (:class:`scanner.app.plc.jobs.PipelineJobs`).

@@ -21,9 +21,11 @@ import os
 import shutil
 import threading
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Protocol, TypeVar
+
+import numpy as np
 
 from metrology.ef_check import EFTolerances
 from scanner.app import stages
@@ -329,10 +331,14 @@ class PipelineJobs:
         )
 
     def scan(self, ctx: JobContext) -> JobOutcome:
-        """Scan a sweep session and measure the recipe's plan (recipe number in register 3).
+        """Scan a sweep session and judge it by the recipe (recipe number in register 3).
 
-        Results: the first three measured values of the plan, converted to µm (a plan's
-        lengths are in mm).
+        A recipe with a plan measures it; one with a nominal mesh inspects the cloud against
+        it (scan-to-CAD). Results: with a nominal, the largest deviation (signed, of the points
+        that are not outliers), the deviation RMS and the alignment RMS, µm, PASS when the
+        inspection's verdict is pass and its pose is not ambiguous; with a plan only, the
+        plan's first three measured values in µm, PASS when no measurement failed. With both,
+        PASS needs both.
         """
         recipe = self.config.recipe(ctx.parameter)
         if recipe is None:
@@ -342,12 +348,28 @@ class PipelineJobs:
                 f"expected a recipe number ({known}), got {ctx.parameter}",
             )
         calibration = self._require_calibration()
-        plan = _call(resolve_config, recipe.plan, "plans")
+        plan = _call(resolve_config, recipe.plan, "plans") if recipe.plan else None
+        spec = _call(resolve_config, recipe.inspect_spec, "inspect") if recipe.nominal else None
         ctx.session_path = self.source.acquire("sweep", ctx, recipe)
         ctx.check_cancelled()
         job = JobLayout.of(ctx.work_dir)
         _call(stages.scan, [ctx.session_path], calibration, job.cloud)
         ctx.check_cancelled()
+        outcomes = []
+        if plan is not None:
+            outcomes.append(self._measure(job, plan, calibration))
+            ctx.check_cancelled()
+        if spec is not None:
+            outcomes.append(self._inspect(job, Path(recipe.nominal), spec))
+        # The inspection's figures go to the registers when there is one; all artefacts stay.
+        return replace(
+            outcomes[-1],
+            passed=all(o.passed for o in outcomes),
+            artefacts=(job.cloud, *(a for o in outcomes for a in o.artefacts)),
+            message="; ".join(o.message for o in outcomes if o.message),
+        )
+
+    def _measure(self, job: JobLayout, plan: Path, calibration: Path) -> JobOutcome:
         run = _call(stages.measure, job.cloud, plan, job.measure, calibration_path=calibration)
         report = run.result
         figures: list[float | None] = [
@@ -358,8 +380,31 @@ class PipelineJobs:
             passed=bool(report.passed),
             results_um=(figures[0], figures[1], figures[2]),
             report_path=run.files.html_path,
-            artefacts=(job.cloud, run.files.json_path),
+            artefacts=(run.files.json_path,),
             message=report.summary(),
+        )
+
+    def _inspect(self, job: JobLayout, nominal: Path, spec: Path) -> JobOutcome:
+        run = _call(
+            stages.inspect, job.cloud, nominal, job.inspection, deviations=job.deviations, spec=spec
+        )
+        result = run.result
+        kept = result.deviation_mm[~result.outlier]
+        largest = float(kept[np.argmax(np.abs(kept))]) if kept.size else None
+        alignment = result.alignment
+        message = f"inspection {result.verdict}, deviation rms {result.stats.rms:.4f} mm"
+        if alignment.ambiguous:
+            message += "; " + "; ".join(alignment.warnings)
+        return JobOutcome(
+            passed=result.verdict == "pass" and not alignment.ambiguous,
+            results_um=(
+                _mm_to_um(largest),
+                _mm_to_um(result.stats.rms),
+                _mm_to_um(alignment.rms_mm),
+            ),
+            report_path=run.report_path or run.out_path,
+            artefacts=(run.out_path, job.deviations),
+            message=message,
         )
 
     def full_calibration(self, ctx: JobContext) -> JobOutcome:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -93,3 +94,15 @@ def test_region_selectors_pick_the_right_points() -> None:
     assert box.select(p, n).tolist() == [True, True, False]
     assert ball.select(p, n).tolist() == [False, False, True]
     assert up.select(p, n).tolist() == [True, False, True]
+
+
+def test_the_documented_spec_loads(tmp_path: Path) -> None:
+    """docs/INSPECT.md's example is a spec that loads (the page does not drift)."""
+    doc = Path(__file__).parents[3] / "docs" / "INSPECT.md"
+    example = re.search(r"```toml\n(.*?)```", doc.read_text(encoding="utf-8"), re.S)
+    assert example is not None
+    path = tmp_path / "doc.toml"
+    path.write_text(example.group(1))
+    spec = load_inspection_spec(path)
+    assert spec.alignment.method == "rps"
+    assert [d.kind for d in spec.alignment.datums] == ["plane", "line", "point"]

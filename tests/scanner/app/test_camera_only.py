@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 import calibration.pipeline as calibration_pipeline
-from scanner.app.cli import main
+from scanner.app import stages
+from scanner.app.cli import build_parser, main
 from scanner.core.conventions import RotationConvention, angle_between_rotations_deg
 from scanner.core.targets import ChessboardTarget
 from scanner.formats.calibration_file import read_calibration
@@ -115,3 +116,29 @@ def test_kuka_camera_only_session_calibrates_through_the_command(tmp_path):
     assert cal.quality.hand_eye_rms_px < 2.45
     assert 255 < cal.flange_from_cam[0, 3] < 263
     assert os.path.getsize(out.with_suffix(".html")) > 10_000
+
+
+@pytest.mark.slow
+def test_laser_origin_from_the_drawing_is_written_when_it_lies_on_the_plane(
+    simulated_cells, tmp_path, monkeypatch
+):
+    """``--laser-origin-mm`` (the sensor drawing's apex of the fan) goes into the file as
+    ``laser_origin_cam``; a point off the calibrated light plane is refused, nothing written."""
+    session = simulated_cells("modern", sessions=("calibration",)) / "calibration"
+    out = tmp_path / "c.json"
+    # The modern cell's laser: origin (10, -140, -5) mm in the camera frame (configs/cells).
+    run = stages.calibrate(session, out, report=None, laser_origin_cam_mm=(10.0, -140.0, -5.0))
+    np.testing.assert_allclose(read_calibration(out).laser_origin_cam, [10.0, -140.0, -5.0])
+    # The same calibration again, with an origin 40 mm off the plane: refused.
+    monkeypatch.setattr(stages, "calibrate_session", lambda *args, **kwargs: run.result)
+    off = tmp_path / "off.json"
+    with pytest.raises(ValueError, match="off it"):
+        stages.calibrate(session, off, report=None, laser_origin_cam_mm=(10.0, -100.0, -5.0))
+    assert not off.exists()
+
+
+def test_laser_origin_option_is_parsed_in_mm() -> None:
+    args = build_parser().parse_args(
+        ["calibrate", "S", "--out", "c.json", "--laser-origin-mm", "10", "-140", "-5"]
+    )
+    assert args.laser_origin_mm == [10.0, -140.0, -5.0]

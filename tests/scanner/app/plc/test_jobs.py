@@ -8,6 +8,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
+import open3d as o3d
 import pytest
 
 from metrology.ef_check import EFCheckResult, EFMeasurement
@@ -31,6 +32,10 @@ from scanner.app.plc.jobs import (
 )
 from scanner.app.plc.registers import ErrorCode
 from scanner.formats.calibration_file import CalibrationQuality
+from scanner.formats.clouds import write_cloud
+from scanner.formats.layout import JobLayout
+from scanner.formats.meshes import write_mesh
+from scanner.virtual_cell.parts import boss_part, scan_part
 
 
 def _session(root: Path, name: str, kind: str, mtime: float | None) -> Path:
@@ -220,3 +225,45 @@ def test_scan_job_reports_the_plans_first_figures_in_micrometres(
     assert outcome.results_um == (pytest.approx(25012.3), None, None)
     assert ctx.session_path == tmp_path / "drop" / "s1"
     assert outcome.report_path is not None and outcome.report_path.is_file()
+
+
+def test_scan_job_with_a_nominal_inspects_the_cloud_against_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+):
+    """A recipe naming a nominal mesh: the scan job inspects its cloud (the real stage) and
+    returns the largest deviation, the deviation RMS and the alignment RMS in µm."""
+    rng = np.random.default_rng(7)
+    bump = (np.array([30.0, 30.0, 30.0]), 0.25, 6.0)
+    scan_truth = scan_part(boss_part(), rng, count=60_000, bump=bump)
+    nominal = write_mesh(tmp_path / "part.stl", boss_part())
+
+    def scan(sessions: list[Path], calibration: Path, out: Path, **_: object) -> None:
+        cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(scan_truth.points_cloud))
+        write_cloud(out, cloud)
+
+    monkeypatch.setattr(stages, "scan", scan)
+    current = tmp_path / "calibration.json"
+    current.write_text("{}", "utf-8")
+    _session(tmp_path / "drop", "s1", "sweep", 1000.0)
+    config = PlcConfig(
+        storage=StorageConfig(calibration=str(current)),
+        recipes=[Recipe(number=4, name="part", nominal=str(nominal))],
+    )
+    jobs = PipelineJobs(config, source=FolderSource(tmp_path / "drop"))
+    ctx = _ctx(tmp_path, config, parameter=4)
+    ctx.work_dir.mkdir()
+    outcome = jobs.scan(ctx)
+    largest_um, rms_um, alignment_um = outcome.results_um
+    assert not outcome.passed  # over 1 % of the points in the bump lie outside +-0.1 mm
+    assert largest_um is not None and 240.0 < largest_um < 340.0  # bump peak + noise tail
+    assert rms_um is not None and 20.0 < rms_um < 40.0
+    assert alignment_um is not None and 18.0 < alignment_um < 35.0  # noise 20 µm + bump
+    job = JobLayout.of(ctx.work_dir)
+    assert job.inspection.is_file() and job.deviations.is_file()
+    assert json.loads(job.inspection.read_text("utf-8"))["verdict"] == "fail"
+    assert "inspection fail" in outcome.message
+
+
+def test_a_recipe_needs_a_plan_or_a_nominal():
+    with pytest.raises(ValueError, match="neither"):
+        Recipe(number=1, name="empty")
