@@ -74,6 +74,12 @@ BENCHMARKS: list[tuple[str, str, list[str], list[str]]] = [
         ["--sizes", "100000", "1000000", "--repeat", "1"],
     ),
     (
+        "inspect",
+        "Scan-to-CAD inspection: pose, deviations, time (issue #18)",
+        [],
+        ["--sizes", "100000", "--seeds", "0", "--no-cli"],
+    ),
+    (
         "plc",
         "PLC service: status-read latency with 50 clients while jobs run",
         [],
