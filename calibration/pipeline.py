@@ -44,6 +44,7 @@ from calibration.light_plane import (
     calibrate_light_plane,
     paper_light_plane,
 )
+from calibration.symmetry import relabel, resolve_quarter_turns, turn
 from scanner.core.camera import CameraModel, intersect_rays_with_plane
 from scanner.core.images import load_gray_image
 from scanner.core.parallel import process_pool
@@ -417,29 +418,72 @@ def calibrate_session(
     stage("hand-eye")
     t1 = time.perf_counter()
     posed = [f for f in found if f.has_pose and f.id in cam_from_target]
+    # Views labelled up to the target's symmetry (no marker seen) wait until the uniquely
+    # labelled ones give a first hand-eye, which resolves their labelling.
+    pending = [f for f in posed if observations[f.id].labelling == "symmetry"]
+    posed = [f for f in posed if observations[f.id].labelling != "symmetry"]
     views: list[PosedView] = []
+    labelling: dict[str, Any] = {
+        "symmetry": sorted(f.id for f in found if observations[f.id].labelling == "symmetry"),
+        "resolved": {},
+        "unresolved": {},
+    }
     if method == "paper":
         he = _paper_hand_eye(session, posed, observations, stripes, camera, plane_res, target)  # type: ignore[arg-type]
     else:
-        for f in posed:
-            obs = observations[f.id]
-            px = obs.points_px
-            if isinstance(target, ConcentricCirclesTarget) and f.id in intr_pose:
-                # The concentric target's few named points are noisier than the view's pose
-                # from the intrinsics adjustment (every ring edge and line point): the hand-eye
-                # sees the features where that pose puts them.
-                px = project_target(camera, intr_pose[f.id], obs.points_target)
-            views.append(
-                PosedView(f.id, f.base_from_flange, px, obs.points_target, cam_from_target[f.id])  # type: ignore[arg-type]
-            )
         pp_std = (intr.std["cx"], intr.std["cy"]) if {"cx", "cy"} <= intr.std.keys() else None
-        he = calibrate_hand_eye(
-            views,
-            camera,
-            "default",
-            refine_intrinsics=refine_intrinsics,
-            principal_point_std_px=pp_std,
-        )
+
+        def hand_eye(frames: list[Frame]) -> tuple[HandEyeResult, list[PosedView]]:
+            views: list[PosedView] = []
+            for f in frames:
+                obs = observations[f.id]
+                px = obs.points_px
+                if isinstance(target, ConcentricCirclesTarget) and f.id in intr_pose:
+                    # The concentric target's few named points are noisier than the view's
+                    # pose from the intrinsics adjustment (every ring edge and line point):
+                    # the hand-eye sees the features where that pose puts them.
+                    px = project_target(camera, intr_pose[f.id], obs.points_target)
+                views.append(
+                    PosedView(
+                        f.id, f.base_from_flange, px, obs.points_target, cam_from_target[f.id]
+                    )  # type: ignore[arg-type]
+                )
+            result = calibrate_hand_eye(
+                views,
+                camera,
+                "default",
+                refine_intrinsics=refine_intrinsics,
+                principal_point_std_px=pp_std,
+            )
+            return result, views
+
+        he, views = hand_eye(posed)
+        if he and pending:
+            resolved = []
+            for f in pending:
+                predicted = (
+                    np.linalg.inv(f.base_from_flange @ he.flange_from_cam) @ he.base_from_target
+                )  # type: ignore[operator]
+                q = resolve_quarter_turns(cam_from_target[f.id], predicted)
+                if not q:
+                    labelling["unresolved"][str(f.id)] = q.reason
+                    rejected.append(Rejection(f.id, "hand-eye", f"no marker, {q.reason}"))
+                    continue
+                labelling["resolved"][str(f.id)] = {
+                    "quarter_turns": q.quarter_turns,
+                    "angle_deg": q.angle_deg,
+                }
+                observations[f.id] = relabel(observations[f.id], q.quarter_turns)  # type: ignore[arg-type]
+                cam_from_target[f.id] = cam_from_target[f.id] @ turn(q.quarter_turns)  # type: ignore[arg-type]
+                if f.id in intr_pose:
+                    intr_pose[f.id] = intr_pose[f.id] @ turn(q.quarter_turns)  # type: ignore[arg-type]
+                resolved.append(f)
+            if resolved:
+                posed = sorted(posed + resolved, key=lambda f: f.id)
+                he, views = hand_eye(posed)
+    if method == "paper" or not he:
+        for f in pending:
+            labelling["unresolved"][str(f.id)] = "no first hand-eye from uniquely labelled views"
     if not he:
         raise ValueError(f"hand-eye ({method}): {he.reason}")
     if he.camera is not None and refine_intrinsics:
@@ -468,6 +512,7 @@ def calibrate_session(
             },
         },
         "extrinsics": extrinsics_q,
+        "labelling": labelling,
         "light_plane": None if plane_res is None else plane_res.quality(),
         "hand_eye": he.quality(),
         "rejected": [r.to_json() for r in rejected],

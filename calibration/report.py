@@ -302,6 +302,24 @@ def write_calibration_report(
             ),
         )
     body += rep.section("Detected features", _features_figure(result))
+    labelling = q.record.get("labelling") or {}
+    if labelling.get("symmetry"):
+        resolved = labelling.get("resolved", {})
+        unresolved = labelling.get("unresolved", {})
+        rows_l = [
+            (
+                f"frame {i}",
+                f"quarter turns {resolved[str(i)]['quarter_turns']} from the robot's motion "
+                f"(pose within {resolved[str(i)]['angle_deg']:.2f} deg of the prediction)"
+                if str(i) in resolved
+                else f"intrinsics and light plane only: {unresolved.get(str(i), 'not posed')}",
+            )
+            for i in labelling["symmetry"]
+        ]
+        body += rep.section(
+            "Views without the orientation marker (labelled up to the target's symmetry)",
+            rep.key_value_table(rows_l),
+        )
     rows = [(str(r.frame_id), f"{r.stage}: {r.reason}") for r in result.rejected]
     rows += [("warning", w) for w in q.warnings]
     if rows:

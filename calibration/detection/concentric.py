@@ -41,6 +41,7 @@ from calibration.detection.concentric_labels import (
     _label_by_marker,
     _local_crossing,
     _locally_biased,
+    label_up_to_symmetry,
 )
 from calibration.detection.concentric_rays import (
     _bright_mask,
@@ -296,8 +297,14 @@ def detect_concentric(
     labelled = _label_by_marker(
         img, bg, target, center, ends, conics, radii, axis_lines, line_dark, paper
     )
+    labelling = "unique"
     if isinstance(labelled, str):
-        return TargetObservation.failed(labelled, size, KIND)
+        if not labelled.startswith("orientation marker"):
+            return TargetObservation.failed(labelled, size, KIND)
+        # No marker to tell A: the view is still good for the intrinsics and the light
+        # plane, labelled up to the target's four-fold symmetry (and says so).
+        labelled = label_up_to_symmetry(center, ends, axis_lines)
+        labelling = "symmetry"
     ix, sign_x, sign_y, marker_px = labelled
     xline, yline = _unit_line(axis_lines[ix]), _unit_line(axis_lines[1 - ix])
 
@@ -375,4 +382,5 @@ def detect_concentric(
         named_px=named,
         vanishing_points=vps,
         marker_px=marker_px,
+        labelling=labelling,
     )

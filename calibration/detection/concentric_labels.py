@@ -122,13 +122,7 @@ def _label_by_marker(
     """
     h, w = img.shape
     r_big = radii[max(conics)]
-    # Four ends around O in image order; candidate labellings are cyclic rotations.
-    e = [ends[0][0], ends[1][0], ends[0][1], ends[1][1]]
-    angs = [np.arctan2(p[1] - center[1], p[0] - center[0]) for p in e]
-    order = np.argsort(angs)  # increasing image angle (clockwise on screen, v down)
-    e = [e[i] for i in order]
-    # Target x -> y is counter-clockwise on screen when looking at the face, i.e. decreasing
-    # image angle: if A = e[i], then C = e[i - 1].
+    e = _ends_in_image_order(center, ends)
     m = target.orientation_marker
     mr = m.diameter_mm / 2
     scores = []
@@ -197,11 +191,39 @@ def _label_by_marker(
     if np.any(np.isfinite(others)) and np.nanmax(others) > 0.3 * sc[best]:
         return "orientation marker ambiguous: more than one dark disc where the marker may be"
     a, cc, mc = candidates[best]
+    return (*_labelling(a, cc, center, ends, axis_lines), mc)
+
+
+def _ends_in_image_order(center: NDArray, ends: list[NDArray]) -> list[NDArray]:
+    """The four ends of the diameters on the largest ring, by increasing image angle around O
+    (clockwise on screen, v down). The four labellings of the target are cyclic rotations of
+    this list: target x -> y is counter-clockwise on screen seen from the face, so if A is
+    ``e[i]``, C is ``e[i - 1]``."""
+    e = [ends[0][0], ends[1][0], ends[0][1], ends[1][1]]
+    angs = [np.arctan2(p[1] - center[1], p[0] - center[0]) for p in e]
+    return [e[i] for i in np.argsort(angs)]
+
+
+def _labelling(
+    a: NDArray, cc: NDArray, center: NDArray, ends: list[NDArray], axis_lines: list[NDArray]
+) -> tuple[int, float, float]:
+    """(index of the x line in ``axis_lines``, sign of +x along it, sign of +y along the y
+    line) for A at ``a`` and C at ``cc``."""
     ix = 0 if min(np.linalg.norm(ends[0] - a, axis=1)) < 1e-6 else 1
     l_x, l_y = _unit_line(axis_lines[ix]), _unit_line(axis_lines[1 - ix])
     sx = 1.0 if float((a - center) @ _axis_dir(l_x, 1.0)) > 0 else -1.0
     sy = 1.0 if float((cc - center) @ _axis_dir(l_y, 1.0)) > 0 else -1.0
-    return ix, sx, sy, mc
+    return ix, sx, sy
+
+
+def label_up_to_symmetry(
+    center: NDArray, ends: list[NDArray], axis_lines: list[NDArray]
+) -> tuple[int, float, float, None]:
+    """A labelling without the marker: right-handed, but one of the target's four rotations
+    by 90 deg about its normal (which one is unknown). Intrinsics and the light plane do not
+    depend on it; a hand-eye does (:mod:`calibration.symmetry` resolves it from the robot's motion)."""
+    e = _ends_in_image_order(center, ends)
+    return (*_labelling(e[0], e[-1], center, ends, axis_lines), None)
 
 
 def _apply_h(H: NDArray, pts: NDArray) -> NDArray:

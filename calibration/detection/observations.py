@@ -106,6 +106,12 @@ class TargetObservation:
         with respect to the ends of the largest ring's diameters.
     marker_px : ndarray, shape (2,) or None
         Image of the orientation marker's centre.
+    labelling : {"unique", "symmetry"}
+        ``"unique"``: the points' target coordinates are certain (the concentric target's
+        marker was seen; a chessboard's or grid's own pattern). ``"symmetry"``: the marker
+        was not seen, the labelling is right up to a rotation of the target by a multiple of
+        90 deg about its normal: good for intrinsics and the light plane, and for a hand-eye
+        only once :func:`calibration.symmetry.resolve_quarter_turns` has resolved it.
     """
 
     ok: bool
@@ -121,6 +127,7 @@ class TargetObservation:
     named_px: dict[str, NDArray] = field(default_factory=dict)
     vanishing_points: dict[str, NDArray] = field(default_factory=dict)
     marker_px: NDArray | None = None
+    labelling: str = "unique"
 
     def __bool__(self) -> bool:
         return bool(self.ok)

@@ -3,6 +3,7 @@ import pytest
 
 from calibration.detection.concentric import detect_concentric
 from calibration.detection.detect import detect_target
+from calibration.symmetry import relabel
 from scanner.core.conventions import transform_points
 from tests.calibration.synth_concentric import demo_target, look_at_pose, render
 
@@ -113,7 +114,7 @@ def test_partly_outside_the_image():
     assert "B" not in obs.named_px  # B is outside
 
 
-def test_hidden_marker_is_refused_not_guessed():
+def test_hidden_marker_gives_a_labelling_up_to_symmetry_not_a_guess():
     rng = np.random.default_rng(15)
     T = look_at_pose(560.0, 20.0, 40.0, 10.0)
     img = render(demo_target(), K, T, SIZE, rng, supersample=3)
@@ -121,8 +122,15 @@ def test_hidden_marker_is_refused_not_guessed():
     u0, v0 = int(m[0]), int(m[1])
     img[v0 - 20 : v0 + 21, u0 - 20 : u0 + 21] = np.median(img)  # paper over the disc
     obs = detect_target(img, demo_target())
-    assert not obs
-    assert "marker" in obs.reason
+    assert obs, obs.reason
+    assert obs.labelling == "symmetry" and obs.marker_px is None
+    # Exactly one quarter turn of the labelling is the truth; the points are right under it.
+    fits = []
+    for k in range(4):
+        turned = relabel(obs, k)
+        err = np.linalg.norm(turned.points_px - project(T, turned.points_target), axis=1)
+        fits.append(err.max() < 0.15)
+    assert sum(fits) == 1
 
 
 def test_no_target_gives_a_reason():

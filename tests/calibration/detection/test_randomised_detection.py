@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from calibration.detection.detect import detect_target
+from calibration.symmetry import relabel
 from scanner.virtual_cell.randomised import (
     RenderedView,
     draw_conditions,
@@ -13,11 +14,16 @@ from scanner.virtual_cell.randomised import (
 
 
 def _errors(v: RenderedView, obs) -> tuple[float, float]:
-    """Centre error and worst named-point error against the truth, px."""
+    """Centre error and worst named-point error against the truth, px (a view labelled up to
+    the target's symmetry: with the quarter turn that fits best)."""
     index = {n: i for i, n in enumerate(v.point_names)}
-    worst = max(
-        float(np.linalg.norm(p - v.points_px[index[n]]))
-        for n, p in zip(obs.point_names, obs.points_px)
+    turns = range(4) if obs.labelling == "symmetry" else [0]
+    worst = min(
+        max(
+            float(np.linalg.norm(p - v.points_px[index[n]])) if n in index else np.inf
+            for n, p in zip(o.point_names, o.points_px)
+        )
+        for o in (relabel(obs, k) if k else obs for k in turns)
     )
     return float(np.linalg.norm(obs.center_px - v.center_px)), worst
 
