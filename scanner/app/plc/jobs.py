@@ -39,7 +39,7 @@ from scanner.app.plc.config import (
 from scanner.app.plc.registers import ErrorCode
 from scanner.core.config import resolve_config
 from scanner.core.fileio import InputError
-from scanner.formats.calibration_file import CalibrationQuality
+from scanner.formats.calibration_file import CalibrationQuality, read_calibration
 from scanner.formats.layout import JobLayout
 
 __all__ = [
@@ -407,6 +407,17 @@ class PipelineJobs:
             message=message,
         )
 
+    def _current_laser_origin(self) -> tuple[float, float, float] | None:
+        """The laser's origin the installed calibration carries (from the sensor's drawing, or
+        estimated): a recalibration keeps it, checked against its new light plane."""
+        if not self.calibration_path.is_file():
+            return None
+        try:
+            origin = read_calibration(self.calibration_path).laser_origin_cam
+        except (InputError, ValueError):
+            return None
+        return None if origin is None else (float(origin[0]), float(origin[1]), float(origin[2]))
+
     def full_calibration(self, ctx: JobContext) -> JobOutcome:
         """Calibrate from a fresh ``calibration`` session; install it only if it passes the gate.
 
@@ -415,7 +426,12 @@ class PipelineJobs:
         ctx.session_path = self.source.acquire("calibration", ctx)
         ctx.check_cancelled()
         job = JobLayout.of(ctx.work_dir)
-        run = _call(stages.calibrate, ctx.session_path, job.calibration)
+        run = _call(
+            stages.calibrate,
+            ctx.session_path,
+            job.calibration,
+            laser_origin_cam_mm=self._current_laser_origin(),
+        )
         ctx.check_cancelled()
         passed, reason, plane_um = calibration_gate(run.quality, self.config.calibration_gate)
         if run.result.calibration.light_plane is None:

@@ -4,6 +4,7 @@ import datetime as dt
 import json
 import os
 import threading
+from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -31,11 +32,12 @@ from scanner.app.plc.jobs import (
     install_calibration,
 )
 from scanner.app.plc.registers import ErrorCode
-from scanner.formats.calibration_file import CalibrationQuality
+from scanner.formats.calibration_file import CalibrationQuality, write_calibration
 from scanner.formats.clouds import write_cloud
 from scanner.formats.layout import JobLayout
 from scanner.formats.meshes import write_mesh
 from scanner.virtual_cell.parts import boss_part, scan_part
+from tests.scanner.formats.test_calibration_file import paper_calibration
 
 
 def _session(root: Path, name: str, kind: str, mtime: float | None) -> Path:
@@ -267,3 +269,29 @@ def test_scan_job_with_a_nominal_inspects_the_cloud_against_it(
 def test_a_recipe_needs_a_plan_or_a_nominal():
     with pytest.raises(ValueError, match="neither"):
         Recipe(number=1, name="empty")
+
+
+def test_a_recalibration_keeps_the_installed_laser_origin(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+):
+    """The laser's origin (from the sensor's drawing) is not in a calibration session: the
+    PLC's recalibration carries the installed one over, for the new plane to be checked on."""
+    given: list[object] = []
+    _fake_pipeline(monkeypatch, GOOD, [])
+    fake = stages.calibrate
+
+    def calibrate(session: Path, out: Path, **kwargs: object) -> SimpleNamespace:
+        given.append(kwargs.get("laser_origin_cam_mm"))
+        return fake(session, out)
+
+    monkeypatch.setattr(stages, "calibrate", calibrate)
+    current = tmp_path / "calibration.json"
+    installed = replace(paper_calibration(), laser_origin_cam=np.array([150.0, 2.0, -5.0]))
+    write_calibration(current, installed)
+    _session(tmp_path / "drop", "s1", "calibration", 1000.0)
+    config = PlcConfig(storage=StorageConfig(calibration=str(current)))
+    jobs = PipelineJobs(config, source=FolderSource(tmp_path / "drop"))
+    ctx = _ctx(tmp_path, config)
+    ctx.work_dir.mkdir()
+    assert jobs.full_calibration(ctx).passed
+    assert given == [(150.0, 2.0, -5.0)]
