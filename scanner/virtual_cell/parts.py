@@ -3,12 +3,13 @@ inspection benchmark and trying ``scanner inspect`` without a part at hand).
 
 A scan here is the cloud a well-calibrated scanner would give: points on the faces a sensor
 above sees (the top and the sides), Gaussian noise along the surface normal, optional stray
-points off the surface and an optional smooth bump (a known form error), all moved into an
+points off the surface and optional smooth bumps and dents (known form errors), all moved into an
 arbitrary cloud frame. The truth is ``nominal_from_cloud`` and each point's true deviation.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -59,7 +60,7 @@ class PartScan:
     nominal_from_cloud : ndarray, shape (4, 4)
         The true pose of the cloud in the nominal frame.
     true_deviation_mm : ndarray, shape (N,)
-        The form error put into each point (the bump), noise and strays excluded.
+        The form error put into each point (bumps and dents), noise and strays excluded.
     stray : ndarray, shape (N,), bool
         The points moved 0.5-3 mm off the surface.
     """
@@ -86,7 +87,7 @@ def scan_part(
     count: int = 60_000,
     noise_mm: float = 0.02,
     stray_share: float = 0.0,
-    bump: tuple[NDArray[np.float64], float, float] | None = None,
+    bumps: Sequence[tuple[NDArray[np.float64], float, float]] = (),
 ) -> PartScan:
     """Simulate a scan of ``mesh``.
 
@@ -102,8 +103,8 @@ def scan_part(
         Standard deviation of the noise along the surface normal.
     stray_share : float
         Share of the points moved 0.5-3 mm off the surface, outwards.
-    bump : (centre_nominal (3,), amplitude_mm, sigma_mm), optional
-        A Gaussian form error along the normal.
+    bumps : sequence of (centre_nominal (3,), amplitude_mm, sigma_mm)
+        Gaussian form errors along the normal (a negative amplitude is a dent).
 
     Returns
     -------
@@ -113,9 +114,8 @@ def scan_part(
     seen = n[:, 2] > -0.5
     p, n = p[seen], n[seen]
     true = np.zeros(len(p))
-    if bump is not None:
-        centre, amplitude, sigma = bump
-        true = amplitude * np.exp(-np.sum((p - centre) ** 2, axis=1) / (2 * sigma**2))
+    for centre, amplitude, sigma in bumps:
+        true += amplitude * np.exp(-np.sum((p - centre) ** 2, axis=1) / (2 * sigma**2))
     p = p + n * (true + rng.normal(0.0, noise_mm, len(p)))[:, None]
     stray = np.zeros(len(p), bool)
     n_stray = int(stray_share * len(p))

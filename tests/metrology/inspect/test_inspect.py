@@ -18,7 +18,7 @@ def bumped():
     """A boss part scanned with a 0.15 mm bump (sigma 3 mm) on its top face and strays."""
     rng = np.random.default_rng(11)
     bump = (np.array([30.0, 30.0, 30.0]), 0.15, 3.0)
-    scan = scan_part(boss_part(), rng, count=150_000, stray_share=0.003, bump=bump)
+    scan = scan_part(boss_part(), rng, count=150_000, stray_share=0.003, bumps=[bump])
     top = InspectionRegion("top", normal=(0.0, 0.0, 1.0), max_angle_deg=5.0)
     ring = InspectionRegion("bump", center_mm=(30.0, 30.0, 30.0), radius_mm=6.0, upper_mm=0.05)
     spec = InspectionSpec(regions=(top, ring))
@@ -108,7 +108,7 @@ def test_rps_alignment_follows_the_datum_faces() -> None:
     rng = np.random.default_rng(4)
     mesh = boss_part()
     bump = (np.array([70.0, 20.0, 50.0]), 0.3, 6.0)  # the boss's top, raised
-    scan = scan_part(mesh, rng, count=120_000, bump=bump)
+    scan = scan_part(mesh, rng, count=120_000, bumps=[bump])
     datums = (
         DatumSpec("plane", InspectionRegion("top", box_min_mm=(0, 0, 29), box_max_mm=(60, 60, 31))),
         DatumSpec("line", InspectionRegion("front", normal=(0, -1, 0), max_angle_deg=5)),
@@ -128,7 +128,7 @@ def test_local_best_fit_fits_one_region_only() -> None:
     rng = np.random.default_rng(6)
     mesh = boss_part()
     bump = (np.array([70.0, 20.0, 50.0]), 0.3, 6.0)
-    scan = scan_part(mesh, rng, count=120_000, bump=bump)
+    scan = scan_part(mesh, rng, count=120_000, bumps=[bump])
     block = InspectionRegion("block", box_min_mm=(-1, -1, -1), box_max_mm=(101, 61, 31))
     spec = InspectionSpec(regions=(block,), alignment=AlignmentSpec(region="block"))
     result = inspect_cloud(scan.points_cloud, mesh, spec)

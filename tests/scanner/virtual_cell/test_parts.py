@@ -14,7 +14,7 @@ def test_a_scan_mapped_by_its_truth_lies_on_the_nominal(make, top_mm: float) -> 
     rng = np.random.default_rng(4)
     mesh = make()
     bump = (np.array([30.0, 30.0, top_mm]), 0.2, 5.0)
-    scan = scan_part(mesh, rng, count=30_000, noise_mm=0.01, stray_share=0.01, bump=bump)
+    scan = scan_part(mesh, rng, count=30_000, noise_mm=0.01, stray_share=0.01, bumps=[bump])
     r, t = scan.nominal_from_cloud[:3, :3], scan.nominal_from_cloud[:3, 3]
     points_nominal = scan.points_cloud @ r.T + t
     signed = NominalSurface(mesh).closest(points_nominal).signed_mm

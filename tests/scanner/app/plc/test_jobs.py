@@ -236,7 +236,7 @@ def test_scan_job_with_a_nominal_inspects_the_cloud_against_it(
     returns the largest deviation, the deviation RMS and the alignment RMS in µm."""
     rng = np.random.default_rng(7)
     bump = (np.array([30.0, 30.0, 30.0]), 0.25, 6.0)
-    scan_truth = scan_part(boss_part(), rng, count=60_000, bump=bump)
+    scan_truth = scan_part(boss_part(), rng, count=60_000, bumps=[bump])
     nominal = write_mesh(tmp_path / "part.stl", boss_part())
 
     def scan(sessions: list[Path], calibration: Path, out: Path, **_: object) -> None:
