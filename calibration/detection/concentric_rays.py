@@ -15,7 +15,6 @@ from contextlib import contextmanager
 import cv2
 import numpy as np
 from numpy.typing import NDArray
-from scipy import ndimage
 
 from calibration.detection.conics import intersect_lines
 
@@ -177,8 +176,33 @@ def _line_from_hough(rho: float, theta: float) -> NDArray:
     return np.array([np.cos(theta), np.sin(theta), -rho])
 
 
-def _sample(img: NDArray, u: NDArray, v: NDArray, order: int = 1) -> NDArray:
-    return ndimage.map_coordinates(img, [v, u], order=order, mode="constant", cval=0.0)
+def _sample(img: NDArray, u: NDArray, v: NDArray) -> NDArray:
+    """Bilinear samples of ``img`` at ``(u, v)`` (0 outside the image), float64, same shape.
+
+    OpenCV's remap: several times faster than ``map_coordinates`` for these scattered
+    samples; its weights are quantised to 1/32 px, far below what the ray profiles and the
+    level medians sampled here resolve.
+    """
+    u = np.asarray(u, dtype=np.float64)
+    v = np.asarray(v, dtype=np.float64)
+    h, w = img.shape
+    src = img if img.dtype == np.float32 else img.astype(np.float32)
+    n, cols = u.size, 1024
+    rows = max(1, -(-n // cols))
+    map_u = np.full(rows * cols, -10.0, np.float32)
+    map_v = np.full(rows * cols, -10.0, np.float32)
+    map_u[:n], map_v[:n] = u.ravel(), v.ravel()
+    out = cv2.remap(
+        src,
+        map_u.reshape(rows, cols),
+        map_v.reshape(rows, cols),
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=0,
+    )
+    values = out.reshape(-1)[:n].astype(np.float64).reshape(u.shape)
+    inside = (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
+    return np.where(inside, values, 0.0)
 
 
 def _ray_peaks(profile: NDArray, thr: float) -> list[int]:

@@ -83,8 +83,11 @@ def _locate_centres(
     ok = np.isfinite(c) & (np.abs(c) < search) & (contrast > 0)
     if bright is not None:
         # A profile touching something brighter than the paper (laser stripe, glare) is biased.
-        hit = ndimage.map_coordinates(bright, [v.ravel(), u.ravel()], order=0, mode="constant")
-        ok &= ~hit.reshape(u.shape).any(axis=1)
+        h, w = bright.shape
+        iu, iv = np.rint(u).astype(np.intp), np.rint(v).astype(np.intp)
+        inside = (iu >= 0) & (iu < w) & (iv >= 0) & (iv < h)
+        hit = inside & bright[np.clip(iv, 0, h - 1), np.clip(iu, 0, w - 1)].astype(bool)
+        ok &= ~hit.any(axis=1)
     return c, contrast, ok
 
 
