@@ -64,6 +64,7 @@ from calibration.detection.concentric_rings import (
     _perimeter_px,
     _refine_axes,
     _refine_ring,
+    _relabel_by_ratios,
     _unit_line,
 )
 from calibration.detection.conics import (
@@ -112,9 +113,32 @@ def detect_concentric(
     size = (int(w), int(h))
     if min(h, w) < 32:
         return TargetObservation.failed(f"image too small ({w}x{h})", size, KIND)
-    radii = np.asarray(target.ring_radii_mm, dtype=np.float64)
+    # The coarse darkness map's closing must be wider than a printed line but narrower than
+    # the paper between two rings, and the target's scale in the image is not known yet: a
+    # kernel for a target filling a good part of the frame first, then smaller ones (a small
+    # or far target, closely spaced rings) when that finds no target.
+    first = max(9, min(h, w) // 40)
+    kernels = sorted({first, max(5, first // 2), max(5, first // 4)}, reverse=True)
+    refused = None
+    for kernel in kernels:
+        obs = _detect_with_kernel(img, target, s, kernel, size)
+        if obs:
+            return obs
+        if refused is None:
+            refused = obs  # the first scale's reason is the one reported
+    return refused  # type: ignore[return-value]
 
-    kernel = max(9, min(h, w) // 40)
+
+def _detect_with_kernel(
+    img: NDArray,
+    target: ConcentricCirclesTarget,
+    s: ConcentricDetectorSettings,
+    kernel: int,
+    size: tuple[int, int],
+) -> TargetObservation:
+    """:func:`detect_concentric` with the coarse stage's closing kernel ``kernel`` px."""
+    h, w = img.shape
+    radii = np.asarray(target.ring_radii_mm, dtype=np.float64)
     # Coarse stage on a lightly smoothed image: noise and grain drop about threefold, a
     # printed line keeps most of its darkness.
     d, bg = _darkness(cv2.GaussianBlur(img, (0, 0), 1.0), kernel)
@@ -168,7 +192,15 @@ def detect_concentric(
             size,
             KIND,
         )
-    c = _pencil_centre(conics, radii, c)
+    c_pencil = _pencil_centre(conics, radii, c)
+    if c_pencil is None:
+        # The rays' labels may be off by a ring: name the conics by their sizes instead.
+        renamed = _relabel_by_ratios(conics, radii)
+        if len(renamed) >= s.min_rings:
+            c_pencil = _pencil_centre(renamed, radii, c)
+            if c_pencil is not None:
+                conics = renamed
+    c = c_pencil
     if c is None:
         return TargetObservation.failed(
             "no ring pencil found: the ring conics are not images of the spec's concentric "
