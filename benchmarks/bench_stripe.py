@@ -26,6 +26,8 @@ import cv2
 import numpy as np
 
 from scanner.stripe.extract import StripeOptions, auto_half_window, estimate_noise, extract_stripe
+from scanner.stripe.fast import _measure_lines
+from scanner.stripe.kernels import HAVE_NUMBA
 from scanner.virtual_cell.analytic import StripeSegment, render_stripes
 
 SHAPE = (768, 1024)
@@ -121,24 +123,40 @@ def step_table() -> None:
     lines = np.arange(H)
     steps = [
         ("frame.max()", lambda: img.max()),
-        ("candidate mask (cv2.threshold)", lambda: cv2.threshold(img, level, 1, cv2.THRESH_BINARY)),
-        ("argmax of every line", lambda: img.argmax(axis=1)),
         ("background level (sparse median)", lambda: stripe._median(grid)),
-        (
-            "windows: gather, product, widths",
-            lambda: stripe._measure_many(img, lines, cols, hw, 255.0, clear=mask.copy()),
-        ),
-        ("  of which mask.copy() (bench only)", lambda: mask.copy()),
-        ("lines with further candidates", lambda: cv2.reduce(mask, 1, cv2.REDUCE_MAX)),
-        ("extract_stripe fast", lambda: extract_stripe(img, "fast", "rows", options=fixed)),
     ]
+    if HAVE_NUMBA:
+        steps.append(
+            (
+                "kernel: argmax, windows, candidates",
+                lambda: _measure_lines(img, hw, 255.0, min(level, 254.0)),
+            )
+        )
+    else:
+        steps += [
+            (
+                "candidate mask (cv2.threshold)",
+                lambda: cv2.threshold(img, level, 1, cv2.THRESH_BINARY),
+            ),
+            ("argmax of every line", lambda: img.argmax(axis=1)),
+            (
+                "windows: gather, product, widths",
+                lambda: stripe._measure_many(img, lines, cols, hw, 255.0, clear=mask.copy()),
+            ),
+            ("  of which mask.copy() (bench only)", lambda: mask.copy()),
+            ("lines with further candidates", lambda: cv2.reduce(mask, 1, cv2.REDUCE_MAX)),
+        ]
+    steps.append(
+        ("extract_stripe fast", lambda: extract_stripe(img, "fast", "rows", options=fixed))
+    )
     # Interleaved rounds, best of each: the steps see the same load.
     best = [float("inf")] * len(steps)
     for _ in range(7):
         for i, (_, fn) in enumerate(steps):
             best[i] = min(best[i], _best_time(fn, repeat=1, number=40))
     t_max, t_all = best[0], best[-1]
-    print(f"\nFast mode, window and noise fixed, by step (each timed alone; hw = {hw} px)")
+    how = "compiled kernel" if HAVE_NUMBA else "NumPy path, numba missing"
+    print(f"\nFast mode, window and noise fixed, by step ({how}; each timed alone; hw = {hw} px)")
     print(f"{'step':38s} {'time':>9s} {'x frame.max()':>14s}")
     total = 0.0
     for (name, _), t in zip(steps[1:-1], best[1:-1], strict=True):

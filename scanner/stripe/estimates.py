@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from scanner.stripe.fast import _measure_many
+from scanner.stripe.fast import _measure_lines, _measure_many
 from scanner.stripe.profile import _FWHM_PER_SIGMA
 
 __all__ = ["auto_half_window", "estimate_noise"]
@@ -54,11 +54,14 @@ def estimate_noise(image: NDArray, step: int = 32) -> float:
 
 def auto_half_window(img: NDArray, noise: float, step: int = 16) -> int:
     """Noise-optimal centre-of-gravity half-window (about 2.7 sigma) from every ``step``-th line."""
-    H = img.shape[0]
-    lines = np.arange(0, H, step)
-    cols = img[::step].argmax(axis=1)
     # Widths and contrasts only: no search for second maxima (it moves centres, not widths).
-    m = _measure_many(img, lines, cols, 10, float("inf"), typical=float("inf"))
+    compiled = _measure_lines(img, 10, float("inf"), step=step, typical=float("inf"))
+    if compiled is not None:
+        m = compiled[0]
+    else:
+        lines = np.arange(0, img.shape[0], step)
+        cols = img[::step].argmax(axis=1)
+        m = _measure_many(img, lines, cols, 10, float("inf"), typical=float("inf"))
     ok = m.contrast > 10.0 * noise
     if np.count_nonzero(ok) < 3:
         return 6

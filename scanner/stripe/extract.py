@@ -30,7 +30,8 @@ lines carry :attr:`StripeFlag.AMBIGUOUS`.
 
 The parts: :mod:`scanner.stripe.profile` (the result, its flags and options),
 :mod:`scanner.stripe.orientation`, :mod:`scanner.stripe.estimates` (noise, window),
-:mod:`scanner.stripe.fast`, :mod:`scanner.stripe.peaks` (several peaks per line, reflections)
+:mod:`scanner.stripe.fast` (with its compiled kernel, :mod:`scanner.stripe.kernels`),
+:mod:`scanner.stripe.peaks` (several peaks per line, reflections)
 and :mod:`scanner.stripe.precise`; :func:`extract_stripe` here puts them together.
 """
 

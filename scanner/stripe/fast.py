@@ -5,7 +5,9 @@ pixels on each side) subtracted, and the centre of gravity of what remains. The 
 linear in the window's pixels, so a whole frame's peaks take one matrix product
 (:func:`_measure_many`); the uncommon peaks (a window at the image border, saturation, two
 maxima in one window) are measured one by one (:func:`_measure`), with the three-point
-Gaussian estimator or the saturated run's centre.
+Gaussian estimator or the saturated run's centre. Where numba imports, a frame's primary peaks
+come from the compiled kernel instead (:func:`_measure_lines`, :mod:`scanner.stripe.kernels`):
+the same measurement in one pass per line, without the intermediate arrays.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import functools
 import numpy as np
 from numpy.typing import NDArray
 
+from scanner.stripe.kernels import HAVE_NUMBA, line_peaks
 from scanner.stripe.profile import _FWHM_PER_SIGMA, StripeFlag, StripeOptions, _Peaks
 
 
@@ -244,16 +247,6 @@ def _measure_many(
     np.maximum(var, 0.0, out=var)
     width = np.sqrt(var, out=var)
     width *= np.float32(_FWHM_PER_SIGMA)
-    if typical is None:
-        far_w = width[~near] if any_near else width
-        if far_w.size == 0:
-            return _measure(img, lines, cols, hw, sat)[0]
-        typical = float(np.partition(far_w, far_w.size // 2)[far_w.size // 2])
-    odd = width > 1.3 * typical
-    if peak.max() >= sat:
-        odd |= peak >= sat
-    if any_near:
-        odd |= near
     peaks = _Peaks(
         lines.astype(np.int64, copy=False),
         cols + mu,
@@ -263,12 +256,78 @@ def _measure_many(
         np.zeros(n, np.uint8),
         slope,
     )
+    return _remeasure_uncommon(img, peaks, cols, near, hw, sat, typical)
+
+
+def _remeasure_uncommon(
+    img: NDArray,
+    peaks: _Peaks,
+    cols: NDArray,
+    near: NDArray | None,
+    hw: int,
+    sat: float,
+    typical: float | None,
+) -> _Peaks:
+    """Measure the uncommon ones of a batch's peaks again with :func:`_measure` (in place).
+
+    ``peaks``: the common-case measurement of every peak; ``near``: windows reaching past the
+    border (``None``: none does); ``typical``: the typical width (``None``: the median over the
+    windows inside the image). Uncommon: near the border, saturated, or wider than 1.3 times
+    the typical width.
+    """
+    lines, width, peak = peaks.line, peaks.width, peaks.peak
+    if typical is None:
+        far_w = width[~near] if near is not None else width
+        if far_w.size == 0:
+            return _measure(img, lines, cols, hw, sat)[0]
+        typical = float(np.partition(far_w, far_w.size // 2)[far_w.size // 2])
+    odd = width > 1.3 * typical
+    if peak.max() >= sat:
+        odd |= peak >= sat
+    if near is not None:
+        odd |= near
     if odd.any():
         special = np.flatnonzero(odd)
         sub, _ = _measure(img, lines[special], cols[special], hw, sat, typical=typical)
         for k in _Peaks.__dataclass_fields__:
             getattr(peaks, k)[special] = getattr(sub, k)
     return peaks
+
+
+def _measure_lines(
+    img: NDArray,
+    hw: int,
+    sat: float,
+    thr: float = float("inf"),
+    step: int = 1,
+    typical: float | None = None,
+) -> tuple[_Peaks, NDArray, NDArray] | None:
+    """The primary peak of every ``step``-th line by the compiled kernel, or ``None``.
+
+    The same peaks as :func:`_measure_many` of ``img[::step].argmax(axis=1)`` (the kernel
+    measures the common windows, :func:`_measure` the uncommon ones), with the peak columns and
+    whether each line holds a pixel above ``thr`` outside its primary window ``cols - hw ..
+    cols + hw``. ``None`` where the kernel does not apply: numba missing, a dtype other than
+    uint8, uint16 or float32, NaN in the frame, a frame narrower than a window, at most two
+    lines, or a negative ``thr`` for an unsigned frame.
+    """
+    H, W = img.shape
+    if (
+        not HAVE_NUMBA
+        or img.dtype not in (np.uint8, np.uint16, np.float32)
+        or not img.flags.c_contiguous
+        or W < 2 * hw + 5
+        or (H + step - 1) // step <= 2
+        or (img.dtype.kind == "u" and thr < 0)
+    ):
+        return None
+    if img.dtype == np.float32 and np.isnan(img.max()):
+        return None
+    cols, pos, peak, contrast, slope, width, near, other = line_peaks(img, step, hw, thr)
+    lines = np.arange(0, H, step)
+    peaks = _Peaks(lines, pos, peak, contrast, width, np.zeros(lines.size, np.uint8), slope)
+    peaks = _remeasure_uncommon(img, peaks, cols, near if near.any() else None, hw, sat, typical)
+    return peaks, cols, other
 
 
 def _clear_windows(clear: NDArray, lines: NDArray, cols: NDArray, hw: int) -> None:

@@ -16,7 +16,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from scanner.stripe.estimates import _median
-from scanner.stripe.fast import _measure_many, _saturation_level
+from scanner.stripe.fast import _measure_lines, _measure_many, _saturation_level
 from scanner.stripe.profile import StripeFlag, StripeOptions, _Peaks
 
 
@@ -35,8 +35,6 @@ def _primary_and_secondary(
         min_contrast = 0.03 * (sat if np.isfinite(sat) else float(img.max()))
     thr_contrast = max(options.k_noise * noise, float(min_contrast))
 
-    lines = np.arange(H)
-    cols = img.argmax(axis=1)
     # Lines where something else clears the threshold outside the primary's window are searched
     # for further peaks; the common frame (one stripe, dark background) skips this entirely.
     if options.background_level is not None:
@@ -44,15 +42,29 @@ def _primary_and_secondary(
     else:
         bg_level = _median(img[:: max(1, H // 32), :: max(1, W // 32)])
     thr = bg_level + thr_contrast
-    # Pixels above the level, the primary windows cleared: what remains is elsewhere on its line.
+    # The candidates: pixels above the level (as cv2.threshold compares: an 8-bit frame's 255
+    # always counts, a float32 frame is compared with the level in float32).
     if img.dtype == np.uint8:
-        _, mask = cv2.threshold(img, min(thr, 254.0), 1, cv2.THRESH_BINARY)
+        thr_pixel = min(thr, 254.0)
     elif img.dtype == np.float32:
-        mask = cv2.threshold(img, thr, 1, cv2.THRESH_BINARY)[1].astype(np.uint8)
+        thr_pixel = float(np.float32(thr))
     else:
-        mask = (img > thr).astype(np.uint8)
-    prim = _measure_many(img, lines, cols, hw, sat, clear=mask)
-    extra = np.flatnonzero(cv2.reduce(mask, 1, cv2.REDUCE_MAX).reshape(-1))
+        thr_pixel = thr
+    compiled = _measure_lines(img, hw, sat, thr_pixel)
+    if compiled is not None:
+        prim, cols, other = compiled
+        extra = np.flatnonzero(other)
+    else:
+        cols = img.argmax(axis=1)
+        # The primary windows cleared from the candidates: what remains is elsewhere on its line.
+        if img.dtype == np.uint8:
+            _, mask = cv2.threshold(img, thr_pixel, 1, cv2.THRESH_BINARY)
+        elif img.dtype == np.float32:
+            mask = cv2.threshold(img, thr, 1, cv2.THRESH_BINARY)[1].astype(np.uint8)
+        else:
+            mask = (img > thr).astype(np.uint8)
+        prim = _measure_many(img, np.arange(H), cols, hw, sat, clear=mask)
+        extra = np.flatnonzero(cv2.reduce(mask, 1, cv2.REDUCE_MAX).reshape(-1))
     parts = [prim]
     if extra.size:
         # The global level is only a first sieve: a further peak must clear its own line's

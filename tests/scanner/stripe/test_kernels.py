@@ -1,0 +1,191 @@
+"""The compiled fast-mode kernel against the NumPy path it replaces, on rendered frames."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from scanner.stripe import fast
+from scanner.stripe.extract import StripeFlag, extract_stripe
+from scanner.stripe.kernels import HAVE_NUMBA, line_peaks
+from scanner.virtual_cell.analytic import StripeSegment, render_stripes
+
+pytestmark = pytest.mark.skipif(not HAVE_NUMBA, reason="numba is not installed")
+
+SHAPE = (240, 320)
+
+
+def _frame(kind: str, width: int = SHAPE[1]):
+    """A rendered frame of one kind, its saturation level and its half-window."""
+    shape = (SHAPE[0], width)
+    scale, dtype, hw = 1.0, np.uint8, 4
+    segs = [StripeSegment((0, 240), (150.3, 0.21, -2e-4), amplitude=170.0)]
+    if kind == "border":  # along the left border, then the right one
+        segs = [
+            StripeSegment((0, 120), (1.2, 0.01), amplitude=160.0),
+            StripeSegment((120, 240), (width - 2.4, 0.0), amplitude=160.0),
+            StripeSegment((0, 240), (150.0, 0.1), amplitude=60.0),
+        ]
+    elif kind == "saturated":
+        segs = [
+            StripeSegment((0, 240), (150.3, 0.21), amplitude=170.0),
+            StripeSegment((60, 160), (80.0, 0.05), amplitude=900.0, sigma_px=2.0),
+        ]
+    elif kind == "uint16":
+        scale, dtype = 64.0, np.uint16
+        segs.append(StripeSegment((80, 120), (2.0, 0.0), amplitude=210.0))
+        segs.append(StripeSegment((150, 200), (60.0, 0.0), amplitude=600.0))
+    elif kind == "second":  # a second segment far away and one just outside the window
+        segs += [
+            StripeSegment((40, 200), (250.0, -0.1), amplitude=120.0),
+            StripeSegment((100, 140), (160.0, 0.21), amplitude=110.0),
+        ]
+    elif kind == "double":  # two maxima inside one window
+        segs = [
+            StripeSegment((0, 240), (120.0, 0.0), amplitude=170.0, sigma_px=1.0),
+            StripeSegment((100, 160), (124.5, 0.0), amplitude=150.0, sigma_px=1.0),
+        ]
+        hw = 6
+    img, _ = render_stripes(
+        shape,
+        [StripeSegment(s.lines, s.coeffs, s.amplitude * scale, s.sigma_px) for s in segs],
+        noise=2.0 * scale,
+        background=8.0 * scale,
+        seed=17,
+        dtype=dtype,
+        full_scale=255.0 * scale,
+    )
+    return img, 255.0 * scale, hw
+
+
+KINDS = ["single", "border", "saturated", "uint16", "second", "double"]
+
+
+def _numpy_primary(img, hw, sat, thr):
+    """The NumPy path's primary peaks and lines with further candidates (as peaks.py)."""
+    H = img.shape[0]
+    cols = img.argmax(axis=1)
+    if img.dtype == np.uint8:
+        mask = cv2.threshold(img, min(thr, 254.0), 1, cv2.THRESH_BINARY)[1]
+    else:
+        mask = (img > thr).astype(np.uint8)
+    prim = fast._measure_many(img, np.arange(H), cols, hw, sat, clear=mask)
+    return prim, cols, mask.max(axis=1) > 0
+
+
+def _assert_same_peaks(got, want):
+    np.testing.assert_array_equal(got.line, want.line)
+    np.testing.assert_array_equal(got.flags, want.flags)
+    np.testing.assert_array_equal(got.peak, want.peak)
+    np.testing.assert_allclose(got.pos, want.pos, rtol=0, atol=1e-4)
+    np.testing.assert_allclose(got.width, want.width, rtol=0, atol=1e-3)
+    scale = max(1.0, float(np.max(want.peak)) / 255.0)
+    np.testing.assert_allclose(got.contrast, want.contrast, rtol=0, atol=1e-3 * scale)
+    np.testing.assert_allclose(got.slope, want.slope, rtol=0, atol=1e-4 * scale)
+
+
+@pytest.mark.parametrize("width", [320, 317])  # whole 8-pixel words per line, and not
+@pytest.mark.parametrize("kind", KINDS)
+def test_kernel_measures_the_primary_peaks_as_numpy_does(kind, width):
+    img, sat, hw = _frame(kind, width)
+    thr = 8.0 * sat / 255.0 + 0.1 * sat
+    got = fast._measure_lines(img, hw, sat, thr)
+    assert got is not None
+    prim, cols, other = got
+    want, want_cols, want_other = _numpy_primary(img, hw, sat, thr)
+    np.testing.assert_array_equal(cols, want_cols)
+    np.testing.assert_array_equal(other, want_other)
+    _assert_same_peaks(prim, want)
+    flags = np.bitwise_or.reduce(want.flags)
+    if kind in ("border", "uint16"):
+        assert flags & StripeFlag.BORDER
+    if kind in ("saturated", "uint16"):
+        assert flags & StripeFlag.SATURATED
+    if kind == "double":
+        assert flags & StripeFlag.AMBIGUOUS
+    if kind == "second":
+        assert np.count_nonzero(other) >= 150
+
+
+def test_kernel_finds_the_first_maximum_and_every_candidate_on_random_lines():
+    rng = np.random.default_rng(18)
+    for dtype, top in ((np.uint8, 6), (np.uint16, 6), (np.float32, 6)):
+        for width in (64, 263, 520):
+            img = rng.integers(0, top, size=(40, width)).astype(dtype)  # many ties
+            hw, thr = 3, 3.5
+            cols, *_, near, other = line_peaks(img, 1, hw, thr)
+            np.testing.assert_array_equal(cols, img.argmax(axis=1))
+            c = np.arange(width)
+            outside = np.abs(c[None, :] - cols[:, None]) > hw
+            np.testing.assert_array_equal(other, np.any((img > thr) & outside, axis=1))
+            np.testing.assert_array_equal(near, (cols < hw + 2) | (cols > width - hw - 3))
+            # Every third line, no candidate search.
+            cols3, *_, other3 = line_peaks(img, 3, hw, np.inf)
+            np.testing.assert_array_equal(cols3, img[::3].argmax(axis=1))
+            assert not other3.any()
+
+
+def test_kernel_level_between_integers_counts_as_numpy_compares():
+    img = np.full((8, 64), 10, np.uint8)
+    img[:, 30] = 200
+    img[:3, 50] = 21
+    for thr, want in ((20.0, 3), (20.99, 3), (21.0, 0), (254.5, 0)):
+        assert np.count_nonzero(line_peaks(img, 1, 4, thr)[-1]) == want
+    img[5, [2, 30]] = 255  # the first is the primary, the second still a candidate
+    assert np.flatnonzero(line_peaks(img, 1, 4, 254.0)[-1]).tolist() == [5]
+    with pytest.raises(ValueError, match="thr"):
+        line_peaks(img, 1, 4, -1.0)
+
+
+@pytest.fixture
+def numpy_path(monkeypatch):
+    """Run the extractor without the kernel (as where numba cannot be imported)."""
+
+    def run(*args, **kwargs):
+        with monkeypatch.context() as m:
+            m.setattr(fast, "HAVE_NUMBA", False)
+            return extract_stripe(*args, **kwargs)
+
+    return run
+
+
+@pytest.mark.parametrize("orientation", ["rows", "cols"])
+@pytest.mark.parametrize("kind", KINDS)
+def test_extract_stripe_gives_the_numpy_profile(kind, orientation, numpy_path):
+    img, _, _ = _frame(kind)
+    if orientation == "cols":
+        img = np.ascontiguousarray(img.T)
+    for mode in ("fast", "precise"):
+        got = extract_stripe(img, mode=mode, orientation=orientation)
+        want = numpy_path(img, mode=mode, orientation=orientation)
+        np.testing.assert_array_equal(got.line, want.line)
+        np.testing.assert_array_equal(got.flags, want.flags)
+        np.testing.assert_array_equal(got.intensity, want.intensity)
+        np.testing.assert_allclose(got.u, want.u, rtol=0, atol=1e-4)
+        np.testing.assert_allclose(got.v, want.v, rtol=0, atol=1e-4)
+        np.testing.assert_allclose(got.width_px, want.width_px, rtol=0, atol=1e-3)
+
+
+def test_float_frames_with_nan_keep_the_numpy_path(numpy_path):
+    img, _, _ = _frame("single")
+    f = img.astype(np.float32)
+    assert fast._measure_lines(f, 4, np.inf, 30.0) is not None
+    f[10, 5] = np.nan
+    assert fast._measure_lines(f, 4, np.inf, 30.0) is None
+    got = extract_stripe(f, mode="fast", orientation="rows", noise=2.0)
+    want = numpy_path(f, mode="fast", orientation="rows", noise=2.0)
+    np.testing.assert_array_equal(got.u, want.u)
+
+
+def test_auto_half_window_is_the_numpy_one(monkeypatch):
+    from scanner.stripe.estimates import auto_half_window
+
+    rng = np.random.default_rng(19)
+    for sigma in (1.0, 1.7, 2.6):
+        seg = StripeSegment((0, 240), (rng.uniform(20, 300), 0.2), amplitude=170.0, sigma_px=sigma)
+        img, _ = render_stripes(SHAPE, [seg], noise=1.0, seed=int(rng.integers(1000)))
+        got = auto_half_window(img, 1.0)
+        with monkeypatch.context() as m:
+            m.setattr(fast, "HAVE_NUMBA", False)
+            assert auto_half_window(img, 1.0) == got
