@@ -292,7 +292,8 @@ def calibrate_intrinsics(
     if not fixed and not auto:
         fixed = DISTORTION_MODELS[distortion]
     for n in fixed:
-        dist0[PARAM_NAMES.index(n) - 4] = 0.0
+        if PARAM_NAMES.index(n) >= 4:
+            dist0[PARAM_NAMES.index(n) - 4] = 0.0
     x, res, prob, sol = _adjust(obs, K0, dist0, poses, f_scale_px, max_points_per_ring, fixed)
 
     # -- outlier views
@@ -322,7 +323,8 @@ def calibrate_intrinsics(
         fixed = DISTORTION_MODELS[model]
         dist1 = x[4:9].copy()
         for n in fixed:
-            dist1[PARAM_NAMES.index(n) - 4] = 0.0
+            if PARAM_NAMES.index(n) >= 4:
+                dist1[PARAM_NAMES.index(n) - 4] = 0.0
         x, res, prob, sol = _adjust(
             obs, camera_matrix(x), dist1, poses, f_scale_px, max_points_per_ring, fixed
         )

@@ -53,6 +53,8 @@ def _features_figure(result: CalibrationResult, max_images: int = 3) -> str:
         ax.imshow(img, cmap="gray")
         ax.plot(obs.points_px[:, 0], obs.points_px[:, 1], "+", color="lime", ms=6)
         for name, p in obs.named_px.items():
+            if obs.labelling == "symmetry" and name != "O":
+                name += "?"  # no marker, not resolved: A-D only up to a quarter turn
             # Readable on the white card and on the dark surroundings alike.
             ax.annotate(
                 name, p, xytext=(4, 4), textcoords="offset points", color="black",

@@ -127,7 +127,11 @@ def relabel(obs: TargetObservation, quarter_turns: int) -> TargetObservation:
         _point_name(xyz, old.split("+")[0].split("-")[0])
         for xyz, old in zip(points_target, obs.point_names)
     ]
-    largest = max((np.linalg.norm(p[:2]) for p in points_target), default=0.0)
+    # A-D lie on the largest ring measured, as the detector names them.
+    largest = max(
+        (r.radius_mm for r in obs.rings),
+        default=max((np.linalg.norm(p[:2]) for p in points_target), default=0.0),
+    )
     key = {"+x": "A", "-x": "B", "+y": "C", "-y": "D"}
     named = {"O": obs.named_px["O"]} if "O" in obs.named_px else {}
     for xyz, name, px in zip(points_target, names, obs.points_px):

@@ -18,6 +18,7 @@ The names of a job folder's artefacts are declared in :class:`scanner.formats.la
 from __future__ import annotations
 
 import hashlib
+import logging
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -62,6 +63,8 @@ from scanner.formats.session import read_session
 from scanner.scanning.pipeline import ScanOptions, ScanResult, check_scan_inputs, scan_session
 from scanner.virtual_cell.simulate import simulate_cell
 from scanner.virtual_cell.truth import CellTruth
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "CalibrateRun",
@@ -182,6 +185,7 @@ def calibrate(
     method: Literal["default", "paper"] = "default",
     refine_intrinsics: bool = False,
     laser_origin_cam_mm: tuple[float, float, float] | None = None,
+    laser_origin_strict: bool = True,
     progress: bool = False,
     on_stage: Callable[[str], None] | None = None,
 ) -> CalibrateRun:
@@ -198,6 +202,9 @@ def calibrate(
     laser_origin_cam_mm : tuple of float, optional
         The laser fan's apex in the camera frame (mm) from the sensor's drawing: written as
         ``laser_origin_cam``; it must lie on the calibrated light plane (within 5 mm).
+    laser_origin_strict : bool
+        An origin off the new plane is an error (``True``, a user's input) or left out with a
+        warning (``False``: the PLC carrying the installed calibration's origin over).
     """
     out = Path(out)
     _require_suffix(out, (".json",), "--out")
@@ -225,12 +232,17 @@ def calibrate(
         if plane is None:
             raise ValueError("--laser-origin-mm: the session gave no light plane to put it on")
         off = abs(float(plane.normal @ origin + plane.d))
-        if off > 5.0:
+        if off <= 5.0:
+            calibration = replace(calibration, laser_origin_cam=origin)
+        elif laser_origin_strict:
             raise ValueError(
                 f"--laser-origin-mm: expected a point on the calibrated light plane, got one "
                 f"{off:.1f} mm off it (camera frame, mm?)"
             )
-        calibration = replace(calibration, laser_origin_cam=origin)
+        else:
+            log.warning(
+                "laser origin %s left out: %.1f mm off the new light plane", origin.tolist(), off
+            )
     result = replace(result, calibration=calibration)
     with commit_together() as staged:
         write_calibration(staged(out), calibration)

@@ -431,6 +431,7 @@ class PipelineJobs:
             ctx.session_path,
             job.calibration,
             laser_origin_cam_mm=self._current_laser_origin(),
+            laser_origin_strict=False,
         )
         ctx.check_cancelled()
         passed, reason, plane_um = calibration_gate(run.quality, self.config.calibration_gate)
