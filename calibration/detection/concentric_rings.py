@@ -388,37 +388,41 @@ def _relabel_by_ratios(conics: dict[int, NDArray], radii: NDArray) -> dict[int, 
     Each conic's radius relative to a reference conic comes from the pencil (concentric
     conics keep their circles' radius ratios); the reference is tried as every spec ring and
     the assignment that puts the most conics near a spec radius (within a third of the local
-    ring spacing, one conic per ring) wins. Conics that fit no ring are dropped. Returns an
+    ring spacing, one conic per ring, best fits first) wins, with each conic tried as the
+    reference. Conics that fit no ring are dropped. Returns an
     empty dict when no assignment fits at least two conics.
     """
     keys = sorted(conics)
     if len(keys) < 2:
         return {}
-    ref = keys[-1]
-    rel = {ref: 1.0}
-    for k in keys[:-1]:
-        try:
-            _, ratio = pencil_center(conics[k], conics[ref])
-        except np.linalg.LinAlgError:
-            continue
-        if np.isfinite(ratio) and ratio > 0:
-            rel[k] = float(np.sqrt(ratio))  # r_ref / r_k
     gaps = np.diff(radii)
+    # Half-gap to the nearer neighbour of each spec ring: a conic closer than a third of it
+    # names that ring.
+    near_gap = np.minimum(np.r_[gaps[:1], gaps], np.r_[gaps, gaps[-1:]])
     best: tuple[int, float, dict[int, int]] = (0, np.inf, {})
-    for m in range(len(radii)):
-        assigned: dict[int, int] = {}
-        error = 0.0
-        for k, q in rel.items():
-            r = radii[m] / q
-            n = int(np.argmin(np.abs(radii - r)))
-            gap = gaps[min(n, len(gaps) - 1)] if n < len(gaps) else gaps[-1]
-            gap = min(gap, gaps[n - 1]) if n > 0 else gap
-            e = abs(radii[n] - r) / gap
-            if e < 1 / 3 and n not in assigned.values():
-                assigned[k] = n
-                error += e
-        if len(assigned) > best[0] or (len(assigned) == best[0] and error < best[1]):
-            best = (len(assigned), error, assigned)
+    for ref in keys:  # a spurious largest conic (the card's edge) must not decide
+        rel = {ref: 1.0}
+        for k in keys:
+            if k == ref:
+                continue
+            try:
+                _, ratio = pencil_center(conics[k], conics[ref])
+            except np.linalg.LinAlgError:
+                continue
+            if np.isfinite(ratio) and ratio > 0:
+                rel[k] = float(np.sqrt(ratio))  # r_ref / r_k
+        for m in range(len(radii)):
+            r = {k: radii[m] / q for k, q in rel.items()}
+            nearest = {k: int(np.argmin(np.abs(radii - rk))) for k, rk in r.items()}
+            err = {k: abs(radii[n] - r[k]) / near_gap[n] for k, n in nearest.items()}
+            assigned: dict[int, int] = {}
+            error = 0.0
+            for k in sorted(err, key=err.get):  # best fits first, one conic per ring
+                if err[k] < 1 / 3 and nearest[k] not in assigned.values():
+                    assigned[k] = nearest[k]
+                    error += err[k]
+            if len(assigned) > best[0] or (len(assigned) == best[0] and error < best[1]):
+                best = (len(assigned), error, assigned)
     if best[0] < 2:
         return {}
     return {n: conics[k] for k, n in sorted(best[2].items(), key=lambda kv: kv[1])}

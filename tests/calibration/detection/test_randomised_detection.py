@@ -63,7 +63,7 @@ def test_paper_target_with_dark_surroundings_is_detected():
 
 
 def test_fast_randomised_slice_never_mislabels():
-    _check_slice(12, seed=7, min_rate=0.5)
+    _check_slice(12, seed=7, min_rate=0.85)  # 9 of 9 detectable detected (2026-11-24)
 
 
 def test_target_free_views_are_refused():
@@ -77,4 +77,4 @@ def test_target_free_views_are_refused():
 
 @pytest.mark.slow
 def test_larger_randomised_slice_never_mislabels():
-    _check_slice(60, seed=8, min_rate=0.5)
+    _check_slice(60, seed=8, min_rate=0.8)  # 44 of 50 (2026-11-24)
