@@ -482,8 +482,15 @@ def calibrate_session(
                 posed = sorted(posed + resolved, key=lambda f: f.id)
                 he, views = hand_eye(posed)
     if method == "paper" or not he:
+        why = (
+            "the paper's hand-eye needs the marker"
+            if method == "paper"
+            else "no first hand-eye from uniquely labelled views"
+        )
         for f in pending:
-            labelling["unresolved"][str(f.id)] = "no first hand-eye from uniquely labelled views"
+            if str(f.id) not in labelling["resolved"] and str(f.id) not in labelling["unresolved"]:
+                labelling["unresolved"][str(f.id)] = why
+                rejected.append(Rejection(f.id, "hand-eye", f"no marker, {why}"))
     if not he:
         raise ValueError(f"hand-eye ({method}): {he.reason}")
     if he.camera is not None and refine_intrinsics:

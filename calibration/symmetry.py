@@ -27,10 +27,9 @@ from calibration.detection.observations import TargetObservation
 
 __all__ = ["QuarterTurns", "relabel", "resolve_quarter_turns", "turn"]
 
-#: The measured pose must lie within this of the predicted one after the turn (deg).
+#: The measured pose must lie within this of the predicted one after the turn (deg). The
+#: turns are 90 deg apart, so every other turn then lies beyond 70 deg: a clear decision.
 MAX_ANGLE_DEG = 20.0
-#: ... and every other turn beyond this (deg): a clear decision.
-MIN_RUNNER_UP_DEG = 60.0
 
 
 def turn(quarter_turns: int) -> NDArray[np.float64]:
@@ -79,8 +78,7 @@ def resolve_quarter_turns(
     Returns
     -------
     QuarterTurns
-        Falsy when no turn lies within :data:`MAX_ANGLE_DEG` or another lies within
-        :data:`MIN_RUNNER_UP_DEG`.
+        Falsy when no turn lies within :data:`MAX_ANGLE_DEG`.
     """
     predicted = Rotation.from_matrix(np.asarray(cam_from_target_predicted)[:3, :3])
     angles = np.array(
@@ -99,10 +97,6 @@ def resolve_quarter_turns(
     if best > MAX_ANGLE_DEG:
         return QuarterTurns(
             None, best, runner_up, f"no quarter turn within {MAX_ANGLE_DEG:g} deg ({best:.1f})"
-        )
-    if runner_up < MIN_RUNNER_UP_DEG:
-        return QuarterTurns(
-            None, best, runner_up, f"two quarter turns fit ({best:.1f} and {runner_up:.1f} deg)"
         )
     return QuarterTurns(int(order[0]), best, runner_up)
 

@@ -132,9 +132,9 @@ def pencil_center(c1: NDArray, c2: NDArray) -> tuple[NDArray, float]:
     center : ndarray, shape (3,)
         Homogeneous, the eigenvector of ``c1^-1 c2`` with the non-repeated eigenvalue.
     ratio : float
-        ``r1^2 / r2^2`` up to the conics' scale is lost, so the ratio returned is the
-        non-repeated eigenvalue divided by the mean of the other two: for exact images of
-        circles of radii r1, r2 it equals ``r1^2 / r2^2``.
+        The non-repeated eigenvalue divided by the mean of the other two (the conics' scale
+        is lost): for exact images of circles of radii r1 (``c1``) and r2 (``c2``) it equals
+        ``r2^2 / r1^2``.
     """
     m = np.linalg.solve(c1, c2)
     w, v = np.linalg.eig(m)

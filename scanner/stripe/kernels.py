@@ -191,13 +191,20 @@ def line_peaks(
     Raises
     ------
     ValueError
-        A frame that is not 2-D and C-contiguous, or a negative ``thr`` for an unsigned frame.
+        A frame that is not 2-D, C-contiguous, native uint8 / uint16 / float32 and at least
+        ``2 hw + 5`` wide; ``hw`` or ``step`` below 1; a negative ``thr`` for an unsigned frame.
     """
     if img.ndim != 2 or not img.flags.c_contiguous:
         raise ValueError(
             f"img: expected a C-contiguous 2-D frame, got shape {img.shape}"
             f" ({'' if img.flags.c_contiguous else 'not '}C-contiguous)"
         )
+    if img.dtype not in (np.uint8, np.uint16, np.float32) or not img.dtype.isnative:
+        raise ValueError(f"img: expected native uint8, uint16 or float32, got {img.dtype}")
+    if hw < 1 or step < 1:
+        raise ValueError(f"hw, step: expected >= 1, got {hw}, {step}")
+    if img.shape[1] < 2 * hw + 5:
+        raise ValueError(f"img: expected at least {2 * hw + 5} columns, got {img.shape[1]}")
     W = img.shape[1]
     words = _NO_WORDS
     if img.dtype == np.uint8 and W % 8 == 0:

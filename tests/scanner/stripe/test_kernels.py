@@ -189,3 +189,18 @@ def test_auto_half_window_is_the_numpy_one(monkeypatch):
         with monkeypatch.context() as m:
             m.setattr(fast, "HAVE_NUMBA", False)
             assert auto_half_window(img, 1.0) == got
+
+
+@pytest.mark.parametrize(
+    "frame,hw,step,reason",
+    [
+        (np.zeros((4, 40), ">u2"), 3, 1, "native"),
+        (np.zeros((4, 40), np.float64), 3, 1, "native"),
+        (np.zeros((4, 10), np.uint8), 3, 1, "columns"),
+        (np.zeros((4, 40), np.uint8), 0, 1, "hw, step"),
+        (np.zeros((4, 40), np.uint8), 3, 0, "hw, step"),
+    ],
+)
+def test_line_peaks_refuses_what_the_kernel_cannot_read(frame, hw, step, reason) -> None:
+    with pytest.raises(ValueError, match=reason):
+        line_peaks(frame, step, hw, 10.0)
