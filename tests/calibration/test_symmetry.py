@@ -21,6 +21,7 @@ from tests.calibration.test_intrinsics import (
     RADII,
     SIZE,
     poses,
+    project,
     synthetic_observation,
 )
 
@@ -52,6 +53,10 @@ def test_relabel_undoes_a_quarter_turn_of_the_labels(k: int) -> None:
     found = _marker_less(obs, k)
     if k:
         assert not np.allclose(found.points_target, obs.points_target)
+    # The module's convention, checked through the camera rather than through relabel
+    # itself: the found labels are seen where cam_from_true @ turn(-k) puts them.
+    seen = project(T @ turn(-k), found.points_target, K_TRUE, DIST_TRUE)
+    np.testing.assert_allclose(seen, obs.points_px, atol=1e-6)
     back = relabel(found, k)
     np.testing.assert_allclose(back.points_target, obs.points_target, atol=1e-9)
     assert back.point_names == obs.point_names
