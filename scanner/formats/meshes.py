@@ -16,12 +16,15 @@ from numpy.typing import NDArray
 
 from scanner.core.fileio import InputError
 
-__all__ = ["MESH_SUFFIXES", "TriangleMesh", "read_mesh", "write_mesh"]
+__all__ = ["MESH_SUFFIXES", "MeshRaycaster", "TriangleMesh", "read_mesh", "write_mesh"]
 
 MESH_SUFFIXES = (".stl", ".ply", ".obj")
 
 #: No coordinate of a part is farther than this from its origin (mm): a workspace bound.
 _SIZE_LIMIT_MM = 1.0e5
+
+#: Open3D's "no primitive" id.
+_INVALID_ID = o3d.t.geometry.RaycastingScene.INVALID_ID
 
 
 @dataclass(frozen=True)
@@ -77,6 +80,124 @@ class TriangleMesh:
         """Axis-aligned bounds (lower, upper) of the vertices used by triangles."""
         used = self.vertices[np.unique(self.triangles)]
         return used.min(axis=0), used.max(axis=0)
+
+    def transformed(self, world_from_mesh: NDArray[np.float64]) -> TriangleMesh:
+        """The same mesh with its vertices moved by a 4x4 rigid ``world_from_mesh``."""
+        m = np.asarray(world_from_mesh, dtype=np.float64)
+        return TriangleMesh(self.vertices @ m[:3, :3].T + m[:3, 3], self.triangles)
+
+    def section(self, normal: NDArray[np.float64], d: float, step_mm: float) -> NDArray[np.float64]:
+        """Points ``(M, 3)`` about every ``step_mm`` along the cut by ``normal . p + d = 0``.
+
+        Each triangle the plane crosses gives one segment, sampled at the middles of
+        ``ceil(length / step_mm)`` equal pieces (so shared edges give no duplicates).
+        """
+        s = self.vertices @ np.asarray(normal, dtype=np.float64) + d
+        above = s[self.triangles] > 0
+        crossed = above.any(axis=1) & ~above.all(axis=1)
+        tri = self.triangles[crossed]
+        st, ab = s[tri], above[crossed]
+        ends = []
+        for i, j in ((0, 1), (1, 2), (2, 0)):
+            cut = ab[:, i] != ab[:, j]
+            w = np.where(cut, st[:, i] / np.where(cut, st[:, i] - st[:, j], 1.0), np.nan)
+            vi, vj = self.vertices[tri[:, i]], self.vertices[tri[:, j]]
+            ends.append(vi + w[:, None] * (vj - vi))
+        ends_arr = np.stack(ends, axis=1)  # (K, 3 edges, 3); exactly two edges are cut
+        valid = ~np.isnan(ends_arr[:, :, 0])
+        order = np.argsort(~valid, axis=1, kind="stable")[:, :2]
+        a = np.take_along_axis(ends_arr, order[:, :1, None], axis=1)[:, 0]
+        b = np.take_along_axis(ends_arr, order[:, 1:2, None], axis=1)[:, 0]
+        length = np.linalg.norm(b - a, axis=1)
+        count = np.maximum(1, np.ceil(length / step_mm)).astype(np.int64)
+        seg = np.repeat(np.arange(len(a)), count)
+        start = np.repeat(np.cumsum(count) - count, count)
+        frac = (np.arange(len(seg)) - start + 0.5) / count[seg]
+        return a[seg] + frac[:, None] * (b[seg] - a[seg])
+
+
+class MeshRaycaster:
+    """Rays and closest points against a triangle mesh, through Open3D's ray-casting scene.
+
+    Open3D casts in float32; every hit is then recomputed in float64 on the plane of the
+    triangle it found, so a ray towards a point of the surface ends at ``t = 1`` to about
+    1e-12 (shadow and occlusion tests can use a tight tolerance). Picklable: the scene is
+    rebuilt in the process that uses it.
+
+    Parameters
+    ----------
+    mesh : TriangleMesh
+        In the frame the rays are given in, mm.
+    """
+
+    def __init__(self, mesh: TriangleMesh) -> None:
+        self.mesh = mesh
+        self._normals = mesh.face_normals()
+        self._v0 = mesh.vertices[mesh.triangles[:, 0]]
+        self._scene: o3d.t.geometry.RaycastingScene | None = None
+
+    def __reduce__(self) -> tuple[type, tuple[TriangleMesh]]:
+        return (MeshRaycaster, (self.mesh,))
+
+    def _get_scene(self) -> o3d.t.geometry.RaycastingScene:
+        if self._scene is None:
+            scene = o3d.t.geometry.RaycastingScene()
+            scene.add_triangles(
+                o3d.core.Tensor(self.mesh.vertices.astype(np.float32)),
+                o3d.core.Tensor(self.mesh.triangles.astype(np.uint32)),
+            )
+            self._scene = scene
+        return self._scene
+
+    def cast(
+        self, origin: NDArray[np.float64], dirs: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+        """First hit of each ray ``origin + t * dirs``.
+
+        Parameters
+        ----------
+        origin : ndarray, shape (3,) or (N, 3)
+        dirs : ndarray, shape (N, 3)
+            Any length: ``t`` is in units of it.
+
+        Returns
+        -------
+        t : ndarray, shape (N,)
+            ``inf`` where the ray misses (or only grazes behind its origin).
+        triangle : ndarray, shape (N,)
+            Index of the triangle hit, -1 on a miss.
+        """
+        d = np.asarray(dirs, dtype=np.float64)
+        o = np.broadcast_to(np.asarray(origin, dtype=np.float64), d.shape)
+        if not len(d):
+            return np.zeros(0), np.zeros(0, dtype=np.int64)
+        rays = o3d.core.Tensor(np.hstack([o, d]).astype(np.float32))
+        ans = self._get_scene().cast_rays(rays)
+        tri = ans["primitive_ids"].numpy().astype(np.int64)
+        hit = np.isfinite(ans["t_hit"].numpy()) & (tri != _INVALID_ID)
+        tri = np.where(hit, tri, -1)
+        t = np.full(len(d), np.inf)
+        k = np.flatnonzero(hit)
+        n = self._normals[tri[k]]
+        den = np.einsum("ij,ij->i", n, d[k])
+        num = np.einsum("ij,ij->i", n, self._v0[tri[k]] - o[k])
+        ok = np.abs(den) > 1e-12 * np.linalg.norm(d[k], axis=1)
+        t_exact = np.where(ok, num / np.where(ok, den, 1.0), ans["t_hit"].numpy()[k])
+        t[k] = np.where(t_exact > 0, t_exact, np.inf)
+        tri[k[t_exact <= 0]] = -1
+        return t, tri
+
+    def closest_triangles(self, points: NDArray[np.float64]) -> NDArray[np.int64]:
+        """Index ``(N,)`` of the triangle nearest each of ``points`` ``(N, 3)``."""
+        p = np.asarray(points, dtype=np.float64)
+        if not len(p):
+            return np.zeros(0, dtype=np.int64)
+        ans = self._get_scene().compute_closest_points(o3d.core.Tensor(p.astype(np.float32)))
+        return ans["primitive_ids"].numpy().astype(np.int64)
+
+    def normals_at(self, points: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Outward unit normals ``(N, 3)`` of the triangles nearest ``points`` ``(N, 3)``."""
+        return self._normals[self.closest_triangles(points)]
 
 
 def read_mesh(path: str | os.PathLike[str]) -> TriangleMesh:

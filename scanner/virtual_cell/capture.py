@@ -8,11 +8,14 @@ The two functions others use most:
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from numpy.typing import NDArray
 
 from scanner.core.conventions import check_transform, make_transform
 from scanner.core.targets import TargetSpec
+from scanner.formats.meshes import read_mesh
 from scanner.virtual_cell.cell import CellConfig, load_cell
 from scanner.virtual_cell.render import (
     Laser,
@@ -28,6 +31,7 @@ from scanner.virtual_cell.render import (
 from scanner.virtual_cell.scene import (
     BoxSurface,
     CylinderSurface,
+    MeshSurface,
     PlaneSurface,
     PrintedTarget,
     SphereSurface,
@@ -116,10 +120,21 @@ def sweep_objects(cell: CellConfig) -> list[Surface]:
                     albedo_value=ob.albedo,
                 )
             )
+        elif ob.type == "mesh":
+            out.append(_mesh_surface(ob.path, ob.center_mm, ob.euler_xyz_deg, ob.id, ob.albedo))
         else:
             m = object_from_euler(np.array(ob.center_mm), np.array(ob.euler_xyz_deg))
             out.append(BoxSurface(m, ob.size_mm, id=ob.id, albedo_value=ob.albedo))
     return out
+
+
+@functools.lru_cache(maxsize=8)
+def _mesh_surface(
+    path: str, center_mm: tuple, euler_xyz_deg: tuple, surface_id: str, albedo: float
+) -> MeshSurface:
+    """A placed mesh part, read and indexed once per process (a sweep renders it per frame)."""
+    m = object_from_euler(np.array(center_mm), np.array(euler_xyz_deg))
+    return MeshSurface(read_mesh(path), m, id=surface_id, albedo_value=albedo)
 
 
 def sweep_scene(cell: CellConfig, base_from_cam: NDArray) -> Scene:

@@ -8,6 +8,7 @@ robot (hand-eye, repeatability), how calibration frames are captured, and the sw
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 from dataclasses import dataclass, field
@@ -21,6 +22,7 @@ from scipy.spatial.transform import Rotation
 from scanner.core.camera import CameraModel
 from scanner.core.config import CONFIG_DIR, load_config, resolve_config
 from scanner.core.conventions import make_transform, orthonormalize
+from scanner.core.fileio import InputError
 from scanner.core.targets import (
     ChessboardTarget,
     CircleGridTarget,
@@ -291,9 +293,11 @@ class ObjectConfig:
 
     ``sphere``: ``center_mm``, ``diameter_mm``. ``cylinder``: ``p0_mm``, ``p1_mm`` (axis ends),
     ``diameter_mm``. ``box``: ``center_mm``, ``size_mm`` (x, y, z extents), ``euler_xyz_deg``.
+    ``mesh``: ``path`` (STL, PLY or OBJ in mm; relative to the cell file, else to ``configs/``),
+    placed by ``center_mm`` (where the mesh's origin goes) and ``euler_xyz_deg``.
     """
 
-    type: Literal["sphere", "cylinder", "box"]
+    type: Literal["sphere", "cylinder", "box", "mesh"]
     id: str
     center_mm: Vec3 = (0.0, 0.0, 0.0)
     diameter_mm: float = 0.0
@@ -302,8 +306,11 @@ class ObjectConfig:
     size_mm: Vec3 = (0.0, 0.0, 0.0)
     euler_xyz_deg: Vec3 = (0.0, 0.0, 0.0)
     albedo: float = 0.7
+    path: str = ""
 
     def __post_init__(self) -> None:
+        if self.type == "mesh" and not self.path:
+            raise ValueError(f"objects {self.id}: a mesh object needs a path")
         if self.type in ("sphere", "cylinder") and self.diameter_mm <= 0:
             raise ValueError(f"objects {self.id}: expected diameter_mm > 0, got {self.diameter_mm}")
         if self.type == "box" and min(self.size_mm) <= 0:
@@ -422,12 +429,27 @@ def load_cell(name_or_path: str | os.PathLike[str] | CellConfig) -> CellConfig:
     if not target.is_absolute() and (path.parent / target).is_file():
         cell = _replace(cell, target=str(path.parent / target))
     cell.target_spec()  # validate now, naming the file
-    return cell
+    return _resolve_mesh_paths(cell, path)
+
+
+def _resolve_mesh_paths(cell: CellConfig, cell_path: Path) -> CellConfig:
+    """Mesh objects' paths made absolute: relative to the cell file, else to ``configs/``."""
+    objects = []
+    for ob in cell.sweep.objects:
+        if ob.type == "mesh":
+            given = Path(ob.path)
+            tries = (
+                [given] if given.is_absolute() else [cell_path.parent / given, CONFIG_DIR / given]
+            )
+            found = next((t for t in tries if t.is_file()), None)
+            if found is None:
+                raise InputError(cell_path, f"objects {ob.id}: mesh {ob.path!r} not found")
+            ob = dataclasses.replace(ob, path=str(found.resolve()))
+        objects.append(ob)
+    return _replace(cell, sweep=dataclasses.replace(cell.sweep, objects=tuple(objects)))
 
 
 def _replace(cell: CellConfig, **changes: object) -> CellConfig:
-    import dataclasses
-
     return dataclasses.replace(cell, **changes)  # type: ignore[arg-type]
 
 

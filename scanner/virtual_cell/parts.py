@@ -11,15 +11,29 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
+import manifold3d
 import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from scanner.formats.meshes import TriangleMesh
+from scanner.formats.meshes import TriangleMesh, write_mesh
 
-__all__ = ["PartScan", "boss_part", "box_mesh", "pinned_block", "random_pose", "scan_part"]
+__all__ = [
+    "SAMPLE_PARTS",
+    "PartScan",
+    "boss_part",
+    "box_mesh",
+    "bracket_part",
+    "flange_part",
+    "pinned_block",
+    "random_pose",
+    "scan_part",
+    "stepped_part",
+    "write_sample_parts",
+]
 
 
 def _from_open3d(mesh: o3d.geometry.TriangleMesh) -> TriangleMesh:
@@ -47,6 +61,68 @@ def pinned_block(pin_radius_mm: float = 2.5, pin_height_mm: float = 3.0) -> Tria
     pin = o3d.geometry.TriangleMesh.create_cylinder(pin_radius_mm, pin_height_mm, resolution=60)
     pin.translate((100.0, 62.0, 25.0 + pin_height_mm / 2))
     return _from_open3d(o3d.geometry.TriangleMesh.create_box(120, 80, 25) + pin)
+
+
+_SEGMENTS = 96  # facets of a full circle: 0.05 mm chord error on a 20 mm radius
+
+
+def _solid(body: manifold3d.Manifold) -> TriangleMesh:
+    mesh = body.to_mesh()
+    return TriangleMesh(
+        np.asarray(mesh.vert_properties, dtype=np.float64)[:, :3],
+        np.asarray(mesh.tri_verts, dtype=np.int32),
+    )
+
+
+def _cube(size: tuple[float, float, float], at: tuple[float, float, float]) -> manifold3d.Manifold:
+    return manifold3d.Manifold.cube(size).translate(at)
+
+
+def _cylinder(
+    radius: float, height: float, at: tuple[float, float, float]
+) -> manifold3d.Manifold:
+    """A z-axis cylinder standing on ``at``."""
+    return manifold3d.Manifold.cylinder(height, radius, radius, _SEGMENTS).translate(at)
+
+
+def bracket_part() -> TriangleMesh:
+    """The sample part: a machined bracket, 120 x 80 mm, 50 mm high, standing on z = 0.
+
+    A 20 mm base plate with a rectangular pocket (40 x 30, 8 deep), a 12 mm through hole and
+    a boss (18 mm, 12 high, with a 8 mm blind bore); a 15 mm upright wall along the back with
+    a 10 mm cross hole. One closed, oriented solid (exact CSG by Manifold).
+    """
+    body = _cube((120, 80, 20), (0, 0, 0)) + _cube((120, 15, 50), (0, 65, 0))
+    body -= _cube((40, 30, 10), (15, 15, 12))
+    body -= _cylinder(6, 40, (85, 30, -10))
+    body += _cylinder(9, 12, (100, 45, 20))
+    body -= _cylinder(4, 20, (100, 45, 22))
+    cross = manifold3d.Manifold.cylinder(40, 5, 5, _SEGMENTS).rotate((-90, 0, 0))
+    body -= cross.translate((30, 55, 35))
+    return _solid(body)
+
+
+def stepped_part() -> TriangleMesh:
+    """A stepped block: three 15 mm steps of 90, 60 and 30 mm depth, 70 mm wide, on z = 0."""
+    body = _cube((90, 70, 15), (0, 0, 0))
+    body += _cube((60, 70, 15), (30, 0, 15))
+    body += _cube((30, 70, 15), (60, 0, 30))
+    return _solid(body)
+
+
+def flange_part() -> TriangleMesh:
+    """A round flange: 100 mm disc 15 high, a 50 mm hub 25 high above it with a 24 mm bore
+    through both, and six 9 mm bolt holes on an 80 mm circle; centred on the z axis."""
+    body = _cylinder(50, 15, (0, 0, 0)) + _cylinder(25, 25, (0, 0, 15))
+    body -= _cylinder(12, 60, (0, 0, -10))
+    for k in range(6):
+        a = np.pi / 3 * k
+        body -= _cylinder(4.5, 30, (40 * np.cos(a), 40 * np.sin(a), -5))
+    return _solid(body)
+
+
+#: The parts the virtual cell ships (``configs/parts/<name>.stl`` is each one written out).
+SAMPLE_PARTS = {"bracket": bracket_part, "stepped": stepped_part, "flange": flange_part}
 
 
 @dataclass(frozen=True)
@@ -126,3 +202,14 @@ def scan_part(
     cloud_from_nominal = random_pose(rng)
     cloud = p @ cloud_from_nominal[:3, :3].T + cloud_from_nominal[:3, 3]
     return PartScan(cloud, np.linalg.inv(cloud_from_nominal), true, stray)
+
+
+def write_sample_parts(folder: Path) -> list[Path]:
+    """Write every sample part as ``folder/<name>.stl`` (how ``configs/parts`` was made)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    return [write_mesh(folder / f"{name}.stl", make()) for name, make in SAMPLE_PARTS.items()]
+
+
+if __name__ == "__main__":
+    for written in write_sample_parts(Path(__file__).resolve().parents[2] / "configs" / "parts"):
+        print(written)

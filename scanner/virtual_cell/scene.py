@@ -21,11 +21,13 @@ from scanner.core.targets import (
     ConcentricCirclesTarget,
     TargetSpec,
 )
+from scanner.formats.meshes import MeshRaycaster, TriangleMesh
 
 __all__ = [
     "BoxSurface",
     "Cut",
     "CylinderSurface",
+    "MeshSurface",
     "PlaneSurface",
     "PrintedTarget",
     "SphereSurface",
@@ -563,6 +565,34 @@ class BoxSurface(Surface):
         parts = [f._section(cut.unclipped()) for f in self._faces]
         parts = [p for p in parts if len(p)]
         return np.concatenate(parts) if parts else np.zeros((0, 3))
+
+
+@dataclass
+class MeshSurface(Surface):
+    """Any triangle mesh (a CAD part): ``world_from_mesh`` places it; flat-shaded triangles.
+
+    The truth of a part scanned in the virtual cell is the mesh itself, so its facets are
+    the surface (no smoothing of normals between triangles).
+    """
+
+    mesh: TriangleMesh
+    world_from_mesh: NDArray
+    id: str = "part"
+    albedo_value: float = 0.6
+    _caster: MeshRaycaster = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self.world_mesh = self.mesh.transformed(self.world_from_mesh)
+        self._caster = MeshRaycaster(self.world_mesh)
+
+    def intersect(self, origin: NDArray, dirs: NDArray) -> NDArray:
+        return self._caster.cast(origin, dirs)[0]
+
+    def normal(self, points: NDArray) -> NDArray:
+        return self._caster.normals_at(points)
+
+    def _section(self, cut: Cut) -> NDArray:
+        return self.world_mesh.section(cut.normal, cut.d, cut.step_mm)
 
 
 def object_from_euler(center: NDArray, euler_xyz_deg: NDArray) -> NDArray:

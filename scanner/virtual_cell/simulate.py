@@ -287,6 +287,9 @@ def _objects_truth(cell: CellConfig) -> tuple[list[ObjectTruth], dict]:
                     },
                 )
             )
+        elif ob.type == "mesh":
+            m = object_from_euler(np.array(ob.center_mm), np.array(ob.euler_xyz_deg))
+            objs.append(ObjectTruth(ob.id, "mesh", {"path": ob.path, "base_from_part": m.tolist()}))
         else:
             m = object_from_euler(np.array(ob.center_mm), np.array(ob.euler_xyz_deg))
             top_n = m[:3, 2]
