@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from scanner.core.camera import CameraModel
-from scanner.core.config import CONFIG_DIR, load_config, resolve_config
+from scanner.core.config import CONFIG_DIR, config_dirs, load_config, resolve_config
 from scanner.core.conventions import make_transform, orthonormalize
 from scanner.core.fileio import InputError
 from scanner.core.targets import (
@@ -293,7 +293,7 @@ class ObjectConfig:
 
     ``sphere``: ``center_mm``, ``diameter_mm``. ``cylinder``: ``p0_mm``, ``p1_mm`` (axis ends),
     ``diameter_mm``. ``box``: ``center_mm``, ``size_mm`` (x, y, z extents), ``euler_xyz_deg``.
-    ``mesh``: ``path`` (STL, PLY or OBJ in mm; relative to the cell file, else to ``configs/``),
+    ``mesh``: ``path`` (STL, PLY or OBJ in mm; relative to the cell file, else to the config folders),
     placed by ``center_mm`` (where the mesh's origin goes) and ``euler_xyz_deg``.
     """
 
@@ -438,9 +438,8 @@ def _resolve_mesh_paths(cell: CellConfig, cell_path: Path) -> CellConfig:
     for ob in cell.sweep.objects:
         if ob.type == "mesh":
             given = Path(ob.path)
-            tries = (
-                [given] if given.is_absolute() else [cell_path.parent / given, CONFIG_DIR / given]
-            )
+            tries = [given] if given.is_absolute() else [cell_path.parent / given]
+            tries += [folder / given for folder in config_dirs()]
             found = next((t for t in tries if t.is_file()), None)
             if found is None:
                 raise InputError(cell_path, f"objects {ob.id}: mesh {ob.path!r} not found")

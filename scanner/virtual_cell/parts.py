@@ -78,9 +78,7 @@ def _cube(size: tuple[float, float, float], at: tuple[float, float, float]) -> m
     return manifold3d.Manifold.cube(size).translate(at)
 
 
-def _cylinder(
-    radius: float, height: float, at: tuple[float, float, float]
-) -> manifold3d.Manifold:
+def _cylinder(radius: float, height: float, at: tuple[float, float, float]) -> manifold3d.Manifold:
     """A z-axis cylinder standing on ``at``."""
     return manifold3d.Manifold.cylinder(height, radius, radius, _SEGMENTS).translate(at)
 
