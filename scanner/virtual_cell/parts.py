@@ -109,13 +109,13 @@ def stepped_part() -> TriangleMesh:
 
 
 def flange_part() -> TriangleMesh:
-    """A round flange: 100 mm disc 15 high, a 50 mm hub 25 high above it with a 24 mm bore
-    through both, and six 9 mm bolt holes on an 80 mm circle; centred on the z axis."""
-    body = _cylinder(50, 15, (0, 0, 0)) + _cylinder(25, 25, (0, 0, 15))
-    body -= _cylinder(12, 60, (0, 0, -10))
+    """A round flange: 100 mm disc 10 high, a 50 mm hub 20 high above it with a 30 mm bore
+    through both, and six 14 mm bolt holes on an 80 mm circle; centred on the z axis."""
+    body = _cylinder(50, 10, (0, 0, 0)) + _cylinder(25, 20, (0, 0, 10))
+    body -= _cylinder(15, 60, (0, 0, -10))
     for k in range(6):
         a = np.pi / 3 * k
-        body -= _cylinder(4.5, 30, (40 * np.cos(a), 40 * np.sin(a), -5))
+        body -= _cylinder(7, 30, (40 * np.cos(a), 40 * np.sin(a), -5))
     return _solid(body)
 
 
