@@ -28,7 +28,14 @@ from numpy.typing import NDArray
 
 from metrology.inspect.result import InspectionResult, RegionResult
 from metrology.inspect.sections import SectionCut, sections_of
-from metrology.inspect.viewer import VIEWS, cloud_viewer_html, feature_edges, project, shade
+from metrology.inspect.viewer import (
+    VIEWS,
+    cloud_viewer_html,
+    feature_edges,
+    project,
+    rasterise,
+    shade,
+)
 from metrology.report import histogram_figure, provenance_items
 from scanner.core.tolerance import format_tolerance, format_value
 from scanner.formats import html as rep
@@ -80,36 +87,6 @@ def _subsample(count: int, limit: int, seed: int = 0) -> NDArray[np.int64]:
 # --------------------------------------------------------------------------------------------
 
 
-def _rasterise(
-    view: NDArray,
-    colours: NDArray,
-    box: tuple[float, float, float, float],
-    pixels: tuple[int, int] = _VIEW_PX,
-) -> tuple[NDArray[np.uint8], tuple[float, float, float, float]]:
-    """A z-buffered picture of view coordinates ``(N, 3)`` inside ``box`` (x0, x1, y0, y1).
-
-    Returns the RGB image ``(H, W, 3)`` (nearest point wins each pixel, 2 x 2 pixel points) and
-    its extent in view coordinates (the box, grown to whole pixels).
-    """
-    x0, x1, y0, y1 = box
-    s = min(pixels[0] / max(x1 - x0, 1e-9), pixels[1] / max(y1 - y0, 1e-9))
-    w, h = max(int(np.ceil((x1 - x0) * s)), 1), max(int(np.ceil((y1 - y0) * s)), 1)
-    u = np.floor((view[:, 0] - x0) * s).astype(np.int64)
-    v = np.floor((y1 - view[:, 1]) * s).astype(np.int64)
-    offsets = ((0, 0), (1, 0), (0, 1), (1, 1))
-    uu = np.concatenate([u + du for du, _ in offsets])
-    vv = np.concatenate([v + dv for _, dv in offsets])
-    depth = np.tile(view[:, 2], len(offsets))
-    which = np.tile(np.arange(len(view)), len(offsets))
-    inside = (uu >= 0) & (uu < w) & (vv >= 0) & (vv < h)
-    pixel = vv[inside] * w + uu[inside]
-    order = np.lexsort((-depth[inside], pixel))
-    winner = order[np.unique(pixel[order], return_index=True)[1]]
-    image = np.full((h * w, 3), 255, np.uint8)
-    image[pixel[winner]] = colours[which[inside][winner]]
-    return image.reshape(h, w, 3), (x0, x0 + w / s, y1 - h / s, y1)
-
-
 def _views_figure(
     points: NDArray,
     normals: NDArray,
@@ -137,7 +114,7 @@ def _views_figure(
         pad = 0.03 * float(max(hi[0] - lo[0], hi[1] - lo[1], 1e-6))
         box = (lo[0] - pad, hi[0] + pad, lo[1] - pad, hi[1] + pad)
         shaded = np.where(outlier[:, None], colours, shade(colours, normals, yaw, pitch))
-        image, extent = _rasterise(view, shaded, box, pixels)
+        image, extent = rasterise(view, shaded, box, pixels)
         ax.imshow(image, extent=extent, interpolation="nearest")
         if len(edge_view):
             lines = edge_view[:, :2].reshape(-1, 2, 2)

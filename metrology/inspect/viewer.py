@@ -29,6 +29,7 @@ __all__ = [
     "cloud_viewer_html",
     "feature_edges",
     "project",
+    "rasterise",
     "shade",
 ]
 
@@ -125,6 +126,36 @@ def feature_edges(mesh: TriangleMesh, angle_deg: float = 30.0) -> NDArray[np.flo
         length = np.linalg.norm(segments[:, 1] - segments[:, 0], axis=1)
         segments = segments[np.argsort(-length)[:MAX_EDGES]]
     return segments
+
+
+def rasterise(
+    view: NDArray,
+    colours: NDArray,
+    box: tuple[float, float, float, float],
+    pixels: tuple[int, int] = (560, 420),
+) -> tuple[NDArray[np.uint8], tuple[float, float, float, float]]:
+    """A z-buffered picture of view coordinates ``(N, 3)`` inside ``box`` (x0, x1, y0, y1).
+
+    Returns the RGB image ``(H, W, 3)`` (nearest point wins each pixel, 2 x 2 pixel points) and
+    its extent in view coordinates (the box, grown to whole pixels).
+    """
+    x0, x1, y0, y1 = box
+    s = min(pixels[0] / max(x1 - x0, 1e-9), pixels[1] / max(y1 - y0, 1e-9))
+    w, h = max(int(np.ceil((x1 - x0) * s)), 1), max(int(np.ceil((y1 - y0) * s)), 1)
+    u = np.floor((view[:, 0] - x0) * s).astype(np.int64)
+    v = np.floor((y1 - view[:, 1]) * s).astype(np.int64)
+    offsets = ((0, 0), (1, 0), (0, 1), (1, 1))
+    uu = np.concatenate([u + du for du, _ in offsets])
+    vv = np.concatenate([v + dv for _, dv in offsets])
+    depth = np.tile(view[:, 2], len(offsets))
+    which = np.tile(np.arange(len(view)), len(offsets))
+    inside = (uu >= 0) & (uu < w) & (vv >= 0) & (vv < h)
+    pixel = vv[inside] * w + uu[inside]
+    order = np.lexsort((-depth[inside], pixel))
+    winner = order[np.unique(pixel[order], return_index=True)[1]]
+    image = np.full((h * w, 3), 255, np.uint8)
+    image[pixel[winner]] = colours[which[inside][winner]]
+    return image.reshape(h, w, 3), (x0, x0 + w / s, y1 - h / s, y1)
 
 
 def _b64(array: NDArray) -> str:

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
 from scanner.core.camera import CameraModel
 from scanner.core.conventions import check_transform
@@ -37,6 +38,7 @@ __all__ = [
     "LinearSweep",
     "SensorGeometry",
     "fibonacci_hemisphere",
+    "measured_by_cloud",
     "sweep_coverage",
     "visible_from_above",
 ]
@@ -291,3 +293,18 @@ def visible_from_above(
         t, _ = part.cast(start, np.broadcast_to(d, (len(todo), 3)))
         seen[todo[~np.isfinite(t)]] = True
     return seen
+
+
+def measured_by_cloud(
+    points: NDArray[np.float64], cloud: NDArray[np.float64], radius_mm: float
+) -> NDArray[np.bool_]:
+    """Which surface samples ``(M, 3)`` a scanned cloud ``(N, 3)`` (same frame) has a point
+    within ``radius_mm`` of: the achieved counterpart of :func:`sweep_coverage`."""
+    if radius_mm <= 0:
+        raise ValueError(f"radius_mm: expected > 0, got {radius_mm}")
+    if not len(cloud):
+        return np.zeros(len(points), dtype=bool)
+    dist, _ = cKDTree(np.asarray(cloud, dtype=np.float64)).query(
+        np.asarray(points, dtype=np.float64), distance_upper_bound=radius_mm
+    )
+    return np.isfinite(dist)

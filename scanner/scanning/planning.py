@@ -32,7 +32,14 @@ from scanner.scanning.coverage import (
     visible_from_above,
 )
 
-__all__ = ["PlanConfig", "SweepPlan", "candidate_sweeps", "nadir_rotation", "plan_sweeps"]
+__all__ = [
+    "PlanConfig",
+    "SweepPlan",
+    "candidate_sweeps",
+    "nadir_rotation",
+    "place_on_table",
+    "plan_sweeps",
+]
 
 
 @dataclass(frozen=True)
@@ -138,6 +145,19 @@ class SweepPlan:
     @property
     def frames(self) -> int:
         return sum(s.frames for s in self.sweeps)
+
+
+def place_on_table(
+    part: TriangleMesh, at_mm: tuple[float, float, float], yaw_deg: float = 0.0
+) -> NDArray[np.float64]:
+    """``base_from_part`` standing the part on its lowest face: the middle of its footprint
+    at ``at_mm`` (base frame; z is the table), turned by ``yaw_deg`` about the vertical."""
+    lo, hi = part.bounds()
+    bottom_centre = np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]])
+    out = np.eye(4)
+    out[:3, :3] = Rotation.from_euler("z", yaw_deg, degrees=True).as_matrix()
+    out[:3, 3] = np.asarray(at_mm, dtype=np.float64) - out[:3, :3] @ bottom_centre
+    return out
 
 
 def nadir_rotation(sensor: SensorGeometry) -> NDArray[np.float64]:

@@ -30,6 +30,7 @@ from scanner.core.targets import (
     OrientationMarker,
     TargetSpec,
 )
+from scanner.scanning.coverage import SensorGeometry
 from scanner.virtual_cell.scene import PrintedTarget
 
 __all__ = [
@@ -408,6 +409,16 @@ class CellConfig:
 
     def camera_model(self) -> CameraModel:
         return self.camera.model()
+
+    def sensor_geometry(self) -> SensorGeometry:
+        """The cell's true sensor (camera, light plane, laser origin, hand-eye) for planning."""
+        return SensorGeometry(
+            self.camera_model(),
+            self.laser.normal,
+            self.laser.d,
+            self.laser.origin,
+            self.robot.flange_from_cam_matrix(),
+        )
 
     def target_spec(self) -> TargetSpec:
         return load_target(self.target)

@@ -13,7 +13,7 @@ import io
 import logging
 import os
 import sys
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -79,6 +79,8 @@ class FramePlan:
     base_from_flange_reported: NDArray | None = None
     base_from_flange_true: NDArray | None = None
     base_from_cam_true: NDArray | None = None
+    sweep: int = 0
+    """Which sweep of a multi-sweep session the frame belongs to."""
 
 
 def resolve_target(cell: CellConfig, name: str | None) -> tuple[TargetSpec, NDArray]:
@@ -98,9 +100,16 @@ def resolve_target(cell: CellConfig, name: str | None) -> tuple[TargetSpec, NDAr
 
 
 def plan_cell(
-    cell: CellConfig, seed: int, sweep_frames: int | None = None
+    cell: CellConfig,
+    seed: int,
+    sweep_frames: int | None = None,
+    sweep_paths: Sequence[NDArray] | None = None,
 ) -> dict[str, list[FramePlan]]:
-    """Every frame of the three sessions, deterministic from ``seed``."""
+    """Every frame of the three sessions, deterministic from ``seed``.
+
+    ``sweep_paths`` (commanded ``base_from_flange`` of each sweep, ``(F_k, 4, 4)``, as a
+    planner writes them) replaces the cell's one linear sweep.
+    """
     rng = np.random.default_rng(np.random.SeedSequence([seed, 0]))
     session_keys = {"calibration": 1, "check": 2, "sweep": 3}
 
@@ -172,25 +181,31 @@ def plan_cell(
         )
         for k in range(cap.check_frames)
     ]
-    b_cams, _ = sweep_poses(cell, sweep_frames)
+    if sweep_paths is None:
+        paths = [sweep_poses(cell, sweep_frames)[0]]
+    else:
+        paths = [np.asarray(path, dtype=np.float64) @ f_c for path in sweep_paths]
     sweep = []
-    for k, b_c in enumerate(b_cams):
-        reported, actual, b_c_true = robot(b_c)
-        sweep.append(
-            FramePlan(
-                "sweep",
-                k,
-                "sweep",
-                "",
-                noise_seed("sweep", k),
-                False,
-                True,
-                None,
-                reported,
-                actual,
-                b_c_true,
+    for index, b_cams in enumerate(paths):
+        for b_c in b_cams:
+            k = len(sweep)
+            reported, actual, b_c_true = robot(b_c)
+            sweep.append(
+                FramePlan(
+                    "sweep",
+                    k,
+                    "sweep",
+                    "",
+                    noise_seed("sweep", k),
+                    False,
+                    True,
+                    None,
+                    reported,
+                    actual,
+                    b_c_true,
+                    index,
+                )
             )
-        )
     return {"calibration": calib, "check": check, "sweep": sweep}
 
 
@@ -341,6 +356,7 @@ def simulate_cell(
     sessions: tuple[str, ...] = ("calibration", "check", "sweep"),
     progress: bool = False,
     fast_sweep: bool = True,
+    sweep_paths: Sequence[NDArray] | None = None,
 ) -> CellTruth:
     """Render the cell's calibration, check and sweep sessions and write the truth.
 
@@ -368,6 +384,9 @@ def simulate_cell(
     fast_sweep : bool
         Render sweep images with the dim ambient light shaded every other pixel (the laser
         line exactly): about three times faster; False shades every pixel fully.
+    sweep_paths : sequence of ndarray, each shape (F_k, 4, 4), optional
+        Commanded ``base_from_flange`` of each sweep (a planned scan): a multi-sweep session
+        (its ``sweep`` column) instead of the cell's one linear sweep.
 
     Returns
     -------
@@ -377,7 +396,7 @@ def simulate_cell(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     spec, c_from_p = resolve_target(cell, target)
-    plans = plan_cell(cell, seed, sweep_frames)
+    plans = plan_cell(cell, seed, sweep_frames, sweep_paths)
     plans = {k: v for k, v in plans.items() if k in sessions}
     ray_map(cell.camera)  # compute once before the workers fork
     jobs = [_Job(cell, p, out, spec, c_from_p, fast_sweep) for name in plans for p in plans[name]]
@@ -407,6 +426,7 @@ def simulate_cell(
                 else None,
                 laser_image=(root / "images" / f"laser_{p.id:04d}.png") if p.laser_image else None,
                 base_from_flange=p.base_from_flange_reported,
+                sweep=p.sweep,
             )
             for p in plan
         ]
