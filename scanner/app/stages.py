@@ -142,7 +142,7 @@ def _require_suffix(path: Path, suffixes: Sequence[str], what: str) -> None:
 
 
 def simulate(
-    cell: str,
+    cell: str | CellConfig,
     out_dir: Path,
     *,
     seed: int = 0,
@@ -151,8 +151,12 @@ def simulate(
     sessions: tuple[str, ...] = ("calibration", "check", "sweep"),
     workers: int = 2,
     progress: bool = False,
+    sweep_paths: Sequence[NDArray] | None = None,
 ) -> CellTruth:
-    """Capture sessions from the virtual cell into ``out_dir/<kind>/``, with their truth."""
+    """Capture sessions from the virtual cell into ``out_dir/<kind>/``, with their truth.
+
+    ``sweep_paths`` (flange poses of each planned sweep) replaces the cell's own sweep.
+    """
     if seed < 0:
         raise ValueError(f"--seed: expected >= 0, got {seed}")
     return simulate_cell(
@@ -164,6 +168,7 @@ def simulate(
         sessions=sessions,
         workers=workers,
         progress=progress,
+        sweep_paths=sweep_paths,
     )
 
 

@@ -93,6 +93,9 @@ class ScanOptions:
         Neighbourhood radius of the normals behind the incidence angles.
     normals_radius_mm : float or None
         Estimate normals with this search radius.
+    crop_min_z_mm : float or None
+        Points at or below this height of the base frame are left out (the table a part
+        stands on), before the sweeps are refined against each other.
     icp : bool
         Refine overlapping sweeps against each other (reports the corrections).
     icp_max_distance_mm, icp_warn_translation_mm, icp_warn_rotation_deg
@@ -115,8 +118,9 @@ class ScanOptions:
     laser_origin_mm: tuple[float, float, float] | None = None
     incidence_radius_mm: float = 1.5
     normals_radius_mm: float | None = None
+    crop_min_z_mm: float | None = None
     icp: bool = False
-    icp_max_distance_mm: float = 2.0
+    icp_max_distance_mm: float = 1.0
     icp_warn_translation_mm: float = 0.2
     icp_warn_rotation_deg: float = 0.1
     workers: int = 2
@@ -582,6 +586,8 @@ def scan_session(
         uv = np.column_stack([profiles["u"], profiles["v"]])
         points = tri.points_base(uv, profiles["frame"], poses)
         ok = np.all(np.isfinite(points), axis=1)
+        if options.crop_min_z_mm is not None:
+            ok &= np.where(ok, points[:, 2], -np.inf) > options.crop_min_z_mm
         frame_pos = profiles["frame"][ok]
         sweep_arr = np.asarray(sweep_of, dtype=np.int32)[frame_pos]
         points = points[ok]

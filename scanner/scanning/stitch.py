@@ -16,6 +16,7 @@ import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from scanner.core.conventions import angle_between_rotations_deg
 
@@ -167,17 +168,99 @@ def _legacy(points: NDArray, voxel_mm: float, normals_radius_mm: float) -> o3d.g
     return pc
 
 
+def _overlap(
+    source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, reach_mm: float
+) -> NDArray[np.int64]:
+    """Indices of source points on surface the target also measured: a target point within
+    ``reach_mm`` with a normal within 20 deg (not an edge, a wall or the other side)."""
+    src = np.asarray(source.points)
+    tgt = np.asarray(target.points)
+    dist, idx = cKDTree(tgt).query(src, distance_upper_bound=reach_mm)
+    near = np.isfinite(dist)
+    cos = np.zeros(len(src))
+    cos[near] = np.abs(
+        np.einsum(
+            "ij,ij->i", np.asarray(source.normals)[near], np.asarray(target.normals)[idx[near]]
+        )
+    )
+    return np.flatnonzero(near & (cos > np.cos(np.radians(20.0))))
+
+
+def _pinned_icp(
+    source: NDArray,
+    target: NDArray,
+    target_normals: NDArray,
+    reach_mm: float,
+    min_conditioning: float,
+    iterations: int = 30,
+) -> tuple[NDArray, float, int]:
+    """Robust point-to-plane ICP that moves a cloud only along the directions its overlap pins.
+
+    Gauss-Newton on the point-to-plane residuals, Tukey-weighted (scale from the median
+    residual), solved in the eigenbasis of the normal matrix (rotations scaled by the points'
+    spread): directions weaker than ``min_conditioning`` times the strongest (a plane slides
+    along itself, a cylinder turns about its axis) are left as the poses put them instead of
+    being filled with noise - the degeneracy-aware update of Zhang, Kaess and Singh (ICRA
+    2016). ``scipy.optimize.least_squares`` cannot leave an unobservable direction alone,
+    hence the explicit iteration.
+
+    Returns ``(source_corrected_from_source (4, 4), inlier rmse, directions pinned)``.
+    """
+    tree = cKDTree(target)
+    transform = np.eye(4)
+    pinned = 0
+    rmse = 0.0
+    for _ in range(iterations):
+        moved = source @ transform[:3, :3].T + transform[:3, 3]
+        dist, idx = tree.query(moved, distance_upper_bound=reach_mm)
+        ok = np.isfinite(dist)
+        if ok.sum() < 10:
+            break
+        p, q, n = moved[ok], target[idx[ok]], target_normals[idx[ok]]
+        r = np.einsum("ij,ij->i", p - q, n)
+        scale = max(1.4826 * float(np.median(np.abs(r))), 1e-6)
+        u = r / (4.685 * scale)
+        w = np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0)
+        rmse = float(np.sqrt(np.sum(w * r * r) / max(np.sum(w), 1e-12)))
+        centre = np.average(p, axis=0, weights=w) if w.sum() > 0 else p.mean(axis=0)
+        arm = p - centre
+        spread = float(np.sqrt(np.average(np.sum(arm**2, axis=1), weights=w))) or 1.0
+        jac = np.hstack([np.cross(arm, n) / spread, n])
+        normal_matrix = jac.T @ (jac * w[:, None])
+        gradient = jac.T @ (w * r)
+        eig, vec = np.linalg.eigh(normal_matrix)
+        keep = eig > min_conditioning * eig[-1]
+        pinned = int(keep.sum())
+        step = -vec[:, keep] @ ((vec[:, keep].T @ gradient) / eig[keep])
+        delta = np.eye(4)
+        delta[:3, :3] = Rotation.from_rotvec(step[:3] / spread).as_matrix()
+        delta[:3, 3] = centre + step[3:] - delta[:3, :3] @ centre
+        transform = delta @ transform
+        if np.linalg.norm(step[3:]) < 1e-7 and np.linalg.norm(step[:3]) < 1e-7:
+            break
+    return transform, rmse, pinned
+
+
 def refine_sweeps(
     points_base: NDArray,
     sweep_id: NDArray,
-    max_distance_mm: float = 2.0,
+    max_distance_mm: float = 1.0,
     voxel_mm: float = 0.5,
     normals_radius_mm: float = 3.0,
     min_fitness: float = 0.3,
     warn_translation_mm: float = 0.2,
     warn_rotation_deg: float = 0.1,
+    min_conditioning: float = 0.01,
 ) -> tuple[NDArray, list[SweepCorrection]]:
-    """Align each sweep to the union of the sweeps before it with point-to-plane ICP.
+    """Align each sweep to the union of the sweeps before it with robust point-to-plane ICP.
+
+    Only the overlap takes part: source points with a reference point within
+    ``max_distance_mm`` whose normals agree within 20 deg (so a wall one sweep sees and
+    the other does not cannot pull it). The fit (:func:`_pinned_icp`) moves a sweep only
+    along the directions the overlap pins (``min_conditioning``): a sweep overlapping the
+    others on one plane is corrected across that plane, not slid along it. The correction is
+    about the sweep's own centroid: ``translation_mm`` is how far it moved the sweep's points
+    there. It is not applied when too little of the sweep overlaps (``min_fitness``).
 
     Parameters
     ----------
@@ -186,17 +269,18 @@ def refine_sweeps(
     sweep_id : ndarray, shape (N,), int
         Sweep of each point. The lowest id is the reference and never moves.
     max_distance_mm : float
-        ICP correspondence distance.
+        Largest offset between sweeps looked for (robot and calibration errors).
     voxel_mm : float
         Downsampling of the ICP's working copies (the output keeps every point).
     normals_radius_mm : float
-        Normal estimation radius of the reference (several profile spacings: a single profile
-        is a line and has no normal).
+        Normal estimation radius (several profile spacings: a single profile is a line and has
+        no normal).
     min_fitness : float
-        Fraction of a sweep's points that must find a partner; below it the sweep is left as the
-        poses put it (too little overlap to judge) and the correction is reported as not applied.
+        Fraction of a sweep's points that must overlap the reference.
     warn_translation_mm, warn_rotation_deg : float
         Corrections above either are logged as warnings.
+    min_conditioning : float
+        Smallest accepted ratio of the weakest to the strongest direction of the fit.
 
     Returns
     -------
@@ -213,33 +297,42 @@ def refine_sweeps(
     corrections: list[SweepCorrection] = []
     if sweeps.size < 2:
         return pts, corrections
-    reg = o3d.pipelines.registration
     ref_mask = sid == sweeps[0]
     for s in sweeps[1:]:
         mask = sid == s
-        target = _legacy(pts[ref_mask], voxel_mm, normals_radius_mm)
-        source = _legacy(pts[mask], voxel_mm, normals_radius_mm)
+        centre = pts[mask].mean(axis=0) if mask.any() else np.zeros(3)
+        target = _legacy(pts[ref_mask] - centre, voxel_mm, normals_radius_mm)
+        source = _legacy(pts[mask] - centre, voxel_mm, normals_radius_mm)
         if len(target.points) < 10 or len(source.points) < 10:
             corrections.append(
                 SweepCorrection(int(s), np.eye(4), 0.0, 0.0, 0.0, 0.0, False, "too few points")
             )
             ref_mask |= mask
             continue
-        result = reg.registration_icp(
-            source,
-            target,
-            max_distance_mm,
-            np.eye(4),
-            reg.TransformationEstimationPointToPlane(),
-            reg.ICPConvergenceCriteria(max_iteration=50),
-        )
-        t = np.asarray(result.transformation)
+        shared = _overlap(source, target, max_distance_mm)
+        fitness = len(shared) / len(source.points)
+        note = ""
+        t = np.eye(4)
+        rmse = 0.0
+        if fitness < min_fitness:
+            note = f"overlap too small (fitness {fitness:.2f})"
+        else:
+            t, rmse, pinned = _pinned_icp(
+                np.asarray(source.points)[shared],
+                np.asarray(target.points),
+                np.asarray(target.normals),
+                max_distance_mm,
+                min_conditioning,
+            )
+            if pinned == 0:
+                note = "the overlap pins no direction"
+            elif pinned < 6:
+                log.info("sweep %d: the overlap pins %d of 6 directions", s, pinned)
         trans = float(np.linalg.norm(t[:3, 3]))
         rot = angle_between_rotations_deg(np.eye(3), t[:3, :3])
-        applied = result.fitness >= min_fitness
-        note = "" if applied else f"overlap too small (fitness {result.fitness:.2f})"
+        applied = fitness >= min_fitness and not note
         if applied:
-            pts[mask] = pts[mask] @ t[:3, :3].T + t[:3, 3]
+            pts[mask] = (pts[mask] - centre) @ t[:3, :3].T + t[:3, 3] + centre
             if trans > warn_translation_mm or rot > warn_rotation_deg:
                 log.warning(
                     "sweep %d: ICP moved it by %.3f mm and %.3f deg: calibration or robot "
@@ -248,17 +341,11 @@ def refine_sweeps(
                     trans,
                     rot,
                 )
+        about_base = np.eye(4)
+        about_base[:3, :3] = t[:3, :3]
+        about_base[:3, 3] = t[:3, 3] + centre - t[:3, :3] @ centre
         corrections.append(
-            SweepCorrection(
-                int(s),
-                t,
-                trans,
-                rot,
-                float(result.fitness),
-                float(result.inlier_rmse),
-                applied,
-                note,
-            )
+            SweepCorrection(int(s), about_base, trans, rot, fitness, rmse, applied, note)
         )
         ref_mask |= mask
     return pts, corrections

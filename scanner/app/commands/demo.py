@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from scanner.app.demo import run_demo
+from scanner.app.full_object import run_full_object
 
 SUMMARY = "run the whole job on the virtual cell and write a report under reports/"
 DESCRIPTION = "Simulate a capture on the virtual cell, calibrate, run the EF check, scan the sphere bar and plate, measure them against a plan, and write one HTML report linking everything. Each stage's artefact stays in the output folder."
@@ -34,10 +35,46 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--fresh", action="store_true", help="simulate again even if the folder holds sessions"
     )
+    p.add_argument(
+        "--part",
+        type=Path,
+        default=None,
+        metavar="PART.stl",
+        help="full-object job instead: plan sweeps over this mesh (e.g. configs/parts/"
+        "bracket.stl), capture, scan and merge them, inspect against the mesh "
+        "(default out: reports/part-<name>)",
+    )
+    p.add_argument(
+        "--step-mm", type=float, default=1.0, help="with --part: travel between profiles"
+    )
     p.set_defaults(func=run)
 
 
+def _run_part(args: argparse.Namespace) -> int:
+    r = run_full_object(
+        args.part, cell=args.cell, out_dir=args.out, seed=args.seed, step_mm=args.step_mm
+    )
+    print(
+        f"full-object job on the '{args.cell}' virtual cell: {r.sweeps} sweeps, {r.frames} "
+        f"profiles, {sum(r.seconds.values()):.0f} s"
+    )
+    print(
+        f"  coverage of the surface visible from above: planned {100 * r.predicted_coverage:.1f} %, "
+        f"achieved {100 * r.achieved_coverage:.1f} %"
+    )
+    for c in r.corrections:
+        print(
+            f"  ICP correction of sweep {c['sweep']}: {c['translation_mm']:.4f} mm, "
+            f"{c['rotation_deg']:.4f} deg"
+        )
+    print(f"  inspection: {r.verdict.upper()}, deviation rms {r.deviation_rms_mm:.4f} mm")
+    print(f"report: {r.inspection_html}; figures: {r.job_json}")
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.part is not None:
+        return _run_part(args)
     result = run_demo(
         cell=args.cell,
         out_dir=args.out,
