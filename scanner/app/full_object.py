@@ -33,14 +33,14 @@ from metrology.coverage_map import write_coverage_map
 from scanner.app import stages
 from scanner.core.fileio import write_json_atomic
 from scanner.formats.clouds import read_cloud
-from scanner.formats.meshes import read_mesh
+from scanner.formats.meshes import TriangleMesh, read_mesh
 from scanner.formats.scan_plan import read_scan_plan
 from scanner.scanning.coverage import measured_by_cloud
 from scanner.scanning.pipeline import ScanOptions
 from scanner.scanning.planning import PlanConfig
 from scanner.virtual_cell.cell import CellConfig, ObjectConfig, load_cell
 
-__all__ = ["FullObjectResult", "cell_with_part", "run_full_object"]
+__all__ = ["FullObjectResult", "cell_with_part", "full_object_scan_options", "run_full_object"]
 
 log = logging.getLogger(__name__)
 
@@ -100,6 +100,17 @@ def cell_with_part(cell: CellConfig, part_path: Path, base_from_part: np.ndarray
         albedo=0.6,
     )
     return replace(cell, sweep=replace(cell.sweep, objects=(part,)))
+
+
+def full_object_scan_options(
+    base_from_part: np.ndarray, part: TriangleMesh, workers: int = 2
+) -> ScanOptions:
+    """How planned sweeps are scanned: precise stripes, ICP between sweeps, and the table the
+    part stands on (the lowest point of the part where the plan put it) left out."""
+    table_z = float(part.transformed(base_from_part).bounds()[0][2])
+    return ScanOptions(
+        mode="precise", icp=True, workers=workers, crop_min_z_mm=table_z + TABLE_CROP_MM
+    )
 
 
 def _say(message: str) -> None:
@@ -189,12 +200,7 @@ def run_full_object(
             [sessions / "sweep"],
             sessions / "calibration_true.json",
             cloud_path,
-            options=ScanOptions(
-                mode="precise",
-                icp=True,
-                workers=workers,
-                crop_min_z_mm=cell_config.sweep.table_z_mm + TABLE_CROP_MM,
-            ),
+            options=full_object_scan_options(planned.base_from_part, read_mesh(part_path), workers),
             progress=progress,
         ),
     )

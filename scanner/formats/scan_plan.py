@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 
 from scanner.core.conventions import (
     RotationConvention,
+    check_transform,
     pose_to_transform,
     rotation_columns,
     transform_to_pose,
@@ -49,11 +50,14 @@ class ScanPlanFile:
         The rotation convention of ``sweeps.csv``.
     record : dict
         The rest of ``plan.json`` (part, sweep parameters, predicted coverage), as written.
+    base_from_part : ndarray, shape (4, 4), or None
+        Where the plan put the part (``part.base_from_part``), when it says.
     """
 
     base_from_flange: tuple[NDArray[np.float64], ...]
     rotation: RotationConvention
     record: dict[str, Any] = field(default_factory=dict)
+    base_from_part: NDArray[np.float64] | None = None
 
     @property
     def frames(self) -> int:
@@ -135,4 +139,13 @@ def read_scan_plan(folder: str | os.PathLike[str]) -> ScanPlanFile:
         raise InputError(path, "expected at least one pose, got none")
     record = {k: v for k, v in meta.items() if k not in ("format", "rotation")}
     ordered = tuple(np.stack(sweeps[k]) for k in sorted(sweeps))
-    return ScanPlanFile(ordered, rotation, record)
+    part = record.get("part")
+    base_from_part = None
+    if isinstance(part, dict) and "base_from_part" in part:
+        try:
+            base_from_part = check_transform(
+                np.asarray(part["base_from_part"], dtype=np.float64), "part.base_from_part"
+            )
+        except (TypeError, ValueError) as exc:
+            raise InputError(root / "plan.json", str(exc)) from None
+    return ScanPlanFile(ordered, rotation, record, base_from_part)

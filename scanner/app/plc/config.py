@@ -199,10 +199,17 @@ class Recipe:
     nominal: str = ""
     #: Inspection spec with the nominal: a ``configs/inspect`` name or a path.
     inspect_spec: str = "default"
+    #: Planned sweeps of a full-object job: a ``scanner plan-scan`` folder (plan.json,
+    #: sweeps.csv) for the part given as ``nominal``. The virtual cell captures them with the
+    #: part where the plan put it; every sweep goes into one cloud (ICP between sweeps, the
+    #: table under the part left out) that is inspected against the nominal.
+    sweeps: str = ""
 
     def __post_init__(self) -> None:
         if not 1 <= self.number <= 65535:
             raise ValueError(f"number: expected 1..65535, got {self.number}")
+        if self.sweeps and not self.nominal:
+            raise ValueError("sweeps: a planned full-object scan needs the part as nominal")
         if not self.plan and not self.nominal:
             raise ValueError(
                 "plan: expected an inspection plan, a nominal mesh or both, got neither"

@@ -29,6 +29,7 @@ import numpy as np
 
 from metrology.ef_check import EFTolerances
 from scanner.app import stages
+from scanner.app.full_object import cell_with_part, full_object_scan_options
 from scanner.app.plc.config import (
     CalibrationGate,
     CheckTolerances,
@@ -41,6 +42,9 @@ from scanner.core.config import resolve_config
 from scanner.core.fileio import InputError
 from scanner.formats.calibration_file import CalibrationQuality, read_calibration
 from scanner.formats.layout import JobLayout
+from scanner.formats.meshes import read_mesh
+from scanner.formats.scan_plan import read_scan_plan
+from scanner.virtual_cell.cell import CellConfig, load_cell
 
 __all__ = [
     "FolderSource",
@@ -192,8 +196,18 @@ class VirtualCellSource:
     workers: int = 2
 
     def acquire(self, kind: str, ctx: JobContext, recipe: Recipe | None = None) -> Path:
-        cell = recipe.cell if recipe is not None and recipe.cell else self.cell
+        cell: str | CellConfig = recipe.cell if recipe is not None and recipe.cell else self.cell
         out = ctx.work_dir / "capture"
+        sweep_paths = None
+        if kind == "sweep" and recipe is not None and recipe.sweeps:
+            planned = _call(read_scan_plan, Path(recipe.sweeps))
+            if planned.base_from_part is None:
+                raise JobError(
+                    ErrorCode.BAD_INPUT, f"{recipe.sweeps}: the plan does not place a part"
+                )
+            part_cell = _call(load_cell, cell)
+            cell = cell_with_part(part_cell, Path(recipe.nominal), planned.base_from_part)
+            sweep_paths = planned.base_from_flange
         _call(
             stages.simulate,
             cell,
@@ -201,6 +215,7 @@ class VirtualCellSource:
             seed=self.seed + ctx.job_id,
             sessions=(kind,),
             workers=self.workers,
+            sweep_paths=sweep_paths,
         )
         session = out / kind
         if not (session / "session.json").is_file():
@@ -350,10 +365,20 @@ class PipelineJobs:
         calibration = self._require_calibration()
         plan = _call(resolve_config, recipe.plan, "plans") if recipe.plan else None
         spec = _call(resolve_config, recipe.inspect_spec, "inspect") if recipe.nominal else None
+        options = None
+        if recipe.sweeps:
+            planned = _call(read_scan_plan, Path(recipe.sweeps))
+            if planned.base_from_part is None:
+                raise JobError(
+                    ErrorCode.BAD_INPUT, f"{recipe.sweeps}: the plan does not place a part"
+                )
+            options = full_object_scan_options(
+                planned.base_from_part, _call(read_mesh, recipe.nominal)
+            )
         ctx.session_path = self.source.acquire("sweep", ctx, recipe)
         ctx.check_cancelled()
         job = JobLayout.of(ctx.work_dir)
-        _call(stages.scan, [ctx.session_path], calibration, job.cloud)
+        _call(stages.scan, [ctx.session_path], calibration, job.cloud, options=options)
         ctx.check_cancelled()
         outcomes = []
         if plan is not None:

@@ -265,3 +265,17 @@ def test_virtual_cell_sweep_lands_on_the_true_table_and_plate(tmp_path):
     assert abs(np.mean(z[table])) < 0.03
     assert np.sqrt(np.mean(z[table] ** 2)) < 0.12
     assert abs(np.mean(z[plate] - plate_top)) < 0.03
+
+
+def test_crop_leaves_out_the_table_and_keeps_the_part(sweep):
+    session, cal_path, scene = sweep
+    whole = scan_session(session, cal_path, ScanOptions(workers=1), None, progress=False)
+    cropped = scan_session(
+        session, cal_path, ScanOptions(workers=1, crop_min_z_mm=0.5), None, progress=False
+    )
+    z_all = whole.cloud.point.positions.numpy()[:, 2]
+    z = cropped.cloud.point.positions.numpy()[:, 2]
+    assert np.all(z > 0.5)
+    on_block = np.abs(z_all - scene.step_mm) < 1.0
+    assert on_block.sum() > 100
+    assert len(z) == np.count_nonzero(z_all > 0.5)

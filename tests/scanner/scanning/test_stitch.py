@@ -1,4 +1,4 @@
-"""Incidence angles from the cloud and the sensor geometry (scanner.scanning.stitch)."""
+"""Incidence angles from the cloud and the sensor geometry, and ICP between sweeps (scanner.scanning.stitch)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from metrology.fits import fit_sphere
-from scanner.scanning.stitch import incidence_cosines
+from scanner.scanning.stitch import incidence_cosines, refine_sweeps
 
 RADIUS_MM = 12.7
 CENTER_MM = np.array([600.0, 60.0, 40.0])
@@ -83,3 +83,43 @@ def test_incidence_cosines_refuse_bad_input():
         incidence_cosines(np.zeros((5, 3)), np.zeros(4, int), np.eye(4)[None])
     with pytest.raises(ValueError, match="points_base"):
         incidence_cosines(np.zeros((5, 2)), np.zeros(5, int), np.eye(4)[None])
+
+
+def _grid(rng: np.random.Generator, x: tuple, y: tuple, z: float, spacing: float = 0.3):
+    xs, ys = np.meshgrid(np.arange(*x, spacing), np.arange(*y, spacing))
+    p = np.column_stack([xs.ravel(), ys.ravel(), np.full(xs.size, z)])
+    return p + rng.normal(0.0, 0.01, p.shape)
+
+
+def _block(rng: np.random.Generator) -> np.ndarray:
+    """The top and two walls of a 60 x 40 x 30 mm block: a corner pins all six directions."""
+    top = _grid(rng, (0, 60), (0, 40), 30.0)
+    wall_x = _grid(rng, (0, 60), (0, 30), 0.0)[:, [0, 2, 1]]  # y = 0 wall, z up
+    wall_y = _grid(rng, (0, 40), (0, 30), 0.0)[:, [2, 0, 1]]  # x = 0 wall
+    return np.concatenate([top, wall_x, wall_y])
+
+
+def test_icp_corrects_a_sweep_offset_where_the_overlap_pins_it():
+    rng = np.random.default_rng(8)
+    ref, moved = _block(rng), _block(rng)
+    offset = np.array([0.12, -0.08, 0.25])
+    pts = np.concatenate([ref, moved + offset])
+    sid = np.repeat([0, 1], [len(ref), len(moved)])
+    out, (c,) = refine_sweeps(pts, sid)
+    assert c.applied
+    np.testing.assert_allclose(out[sid == 1].mean(axis=0), moved.mean(axis=0), atol=0.01)
+    assert c.translation_mm == pytest.approx(np.linalg.norm(offset), abs=0.01)
+
+
+def test_icp_leaves_a_sweep_alone_along_directions_its_overlap_does_not_pin():
+    """Two sweeps overlapping on one plane: the offset across the plane is corrected, the slide
+    along it (which nothing in the overlap can see) is left as the poses put it."""
+    rng = np.random.default_rng(9)
+    ref = _grid(rng, (0, 60), (0, 40), 30.0)
+    moved = _grid(rng, (0, 60), (0, 40), 30.0)
+    pts = np.concatenate([ref, moved + np.array([0.4, 0.3, 0.2])])
+    sid = np.repeat([0, 1], [len(ref), len(moved)])
+    out, (c,) = refine_sweeps(pts, sid)
+    assert c.applied
+    shift = out[sid == 1].mean(axis=0) - moved.mean(axis=0)
+    np.testing.assert_allclose(shift, [0.4, 0.3, 0.0], atol=0.01)

@@ -27,6 +27,7 @@ from scanner.app.plc.jobs import (
     JobContext,
     JobError,
     PipelineJobs,
+    VirtualCellSource,
     calibration_gate,
     ef_tolerances,
     install_calibration,
@@ -36,7 +37,8 @@ from scanner.formats.calibration_file import CalibrationQuality, write_calibrati
 from scanner.formats.clouds import write_cloud
 from scanner.formats.layout import JobLayout
 from scanner.formats.meshes import write_mesh
-from scanner.virtual_cell.parts import boss_part, scan_part
+from scanner.scanning.planning import PlanConfig
+from scanner.virtual_cell.parts import SAMPLE_PARTS, boss_part, scan_part
 from tests.scanner.formats.test_calibration_file import paper_calibration
 
 
@@ -295,3 +297,56 @@ def test_a_recalibration_keeps_the_installed_laser_origin(
     ctx.work_dir.mkdir()
     assert jobs.full_calibration(ctx).passed
     assert given == [(150.0, 2.0, -5.0)]
+
+
+def test_a_recipe_with_planned_sweeps_runs_the_full_object_job(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+):
+    """A recipe naming a part and its plan: the virtual cell captures the planned sweeps with
+    the part where the plan put it, the scan merges them without the table (ICP on), and the
+    cloud is inspected against the part."""
+    part = write_mesh(tmp_path / "stepped.stl", SAMPLE_PARTS["stepped"]())
+    plan_dir = tmp_path / "plan"
+    config_plan = PlanConfig(step_mm=4.0, samples=4000)
+    planned = stages.plan_scan(
+        part, plan_dir, cell="modern", part_at_mm=(590.0, 110.0, 0.0), config=config_plan
+    )
+    seen: dict[str, object] = {}
+
+    def simulate(cell, out: Path, **kwargs: object):
+        seen["cell"], seen["sweep_paths"] = cell, kwargs["sweep_paths"]
+        (out / "sweep").mkdir(parents=True)
+        (out / "sweep" / "session.json").write_text("{}", "utf-8")
+
+    rng = np.random.default_rng(11)
+    truth = scan_part(SAMPLE_PARTS["stepped"](), rng, count=40_000)
+
+    def scan(sessions: list[Path], calibration: Path, out: Path, **kwargs: object) -> None:
+        seen["options"] = kwargs["options"]
+        write_cloud(out, o3d.t.geometry.PointCloud(o3d.core.Tensor(truth.points_cloud)))
+
+    monkeypatch.setattr(stages, "simulate", simulate)
+    monkeypatch.setattr(stages, "scan", scan)
+    current = tmp_path / "calibration.json"
+    current.write_text("{}", "utf-8")
+    recipe = Recipe(number=5, name="full", nominal=str(part), sweeps=str(plan_dir))
+    config = PlcConfig(storage=StorageConfig(calibration=str(current)), recipes=[recipe])
+    jobs = PipelineJobs(config, source=VirtualCellSource("modern"))
+    ctx = _ctx(tmp_path, config, parameter=5)
+    ctx.work_dir.mkdir()
+    outcome = jobs.scan(ctx)
+    (placed,) = seen["cell"].sweep.objects
+    assert placed.type == "mesh" and Path(placed.path) == part.resolve()
+    np.testing.assert_allclose(placed.center_mm, planned.base_from_part[:3, 3], atol=1e-9)
+    paths = seen["sweep_paths"]
+    assert len(paths) == len(planned.plan.sweeps)
+    assert sum(len(p) for p in paths) == planned.plan.frames
+    options = seen["options"]
+    assert options.icp and options.crop_min_z_mm == pytest.approx(0.5)
+    assert JobLayout.of(ctx.work_dir).inspection.is_file()
+    assert outcome.results_um[1] is not None and outcome.results_um[1] < 40.0  # rms, 20 µm noise
+
+
+def test_planned_sweeps_need_the_part_as_nominal(tmp_path: Path):
+    with pytest.raises(ValueError, match="needs the part as nominal"):
+        Recipe(number=1, name="x", plan="modern_sweep", sweeps=str(tmp_path))
