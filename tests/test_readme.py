@@ -65,7 +65,7 @@ def test_reference_commands_exist_with_their_options():
     parser = build_parser()
     sub = next(a for a in parser._actions if a.dest == "command")
     text = README.read_text(encoding="utf-8")
-    for cmd, options in re.findall(r"^\| `scanner (\w+)([^`]*)`", text, flags=re.M):
+    for cmd, options in re.findall(r"^\| `scanner ([\w-]+)([^`]*)`", text, flags=re.M):
         assert cmd in sub.choices, f"README names `scanner {cmd}`, which does not exist"
         known = {o for a in sub.choices[cmd]._actions for o in a.option_strings}
         for option in re.findall(r"--[a-z][a-z-]*", options):
