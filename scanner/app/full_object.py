@@ -105,11 +105,18 @@ def cell_with_part(cell: CellConfig, part_path: Path, base_from_part: np.ndarray
 def full_object_scan_options(
     base_from_part: np.ndarray, part: TriangleMesh, workers: int = 2
 ) -> ScanOptions:
-    """How planned sweeps are scanned: precise stripes, ICP between sweeps, and the table the
-    part stands on (the lowest point of the part where the plan put it) left out."""
+    """How planned sweeps are scanned: precise stripes, ICP between sweeps, the table the part
+    stands on (the lowest point of the part where the plan put it) left out, and isolated
+    points removed (statistical outlier removal over 20 neighbours at 2 sigma: a single stray
+    point tens of mm off would otherwise dominate the cloud's RMS against the CAD)."""
     table_z = float(part.transformed(base_from_part).bounds()[0][2])
     return ScanOptions(
-        mode="precise", icp=True, workers=workers, crop_min_z_mm=table_z + TABLE_CROP_MM
+        mode="precise",
+        icp=True,
+        workers=workers,
+        crop_min_z_mm=table_z + TABLE_CROP_MM,
+        outlier_neighbors=20,
+        outlier_std_ratio=2.0,
     )
 
 
