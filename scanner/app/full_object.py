@@ -107,16 +107,17 @@ def full_object_scan_options(
 ) -> ScanOptions:
     """How planned sweeps are scanned: precise stripes, ICP between sweeps, the table the part
     stands on (the lowest point of the part where the plan put it) left out, and isolated
-    points removed (statistical outlier removal over 20 neighbours at 2 sigma: a single stray
-    point tens of mm off would otherwise dominate the cloud's RMS against the CAD)."""
+    points removed (fewer than 3 others within 2 mm: a single stray point tens of mm off would
+    otherwise dominate the cloud's RMS against the CAD; a statistical filter would also thin
+    the sparse, legitimate points of bore walls seen at a slant)."""
     table_z = float(part.transformed(base_from_part).bounds()[0][2])
     return ScanOptions(
         mode="precise",
         icp=True,
         workers=workers,
         crop_min_z_mm=table_z + TABLE_CROP_MM,
-        outlier_neighbors=20,
-        outlier_std_ratio=2.0,
+        isolated_radius_mm=2.0,
+        isolated_min_neighbors=3,
     )
 
 

@@ -93,6 +93,9 @@ class ScanOptions:
         Neighbourhood radius of the normals behind the incidence angles.
     normals_radius_mm : float or None
         Estimate normals with this search radius.
+    isolated_radius_mm : float or None
+        Points with fewer than ``isolated_min_neighbors`` others within this radius are left
+        out (single strays far from any surface); ``None``: off.
     crop_min_z_mm : float or None
         Points at or below this height of the base frame are left out (the table a part
         stands on), before the sweeps are refined against each other.
@@ -118,6 +121,8 @@ class ScanOptions:
     laser_origin_mm: tuple[float, float, float] | None = None
     incidence_radius_mm: float = 1.5
     normals_radius_mm: float | None = None
+    isolated_radius_mm: float | None = None
+    isolated_min_neighbors: int = 3
     crop_min_z_mm: float | None = None
     icp: bool = False
     icp_max_distance_mm: float = 1.0
@@ -638,6 +643,8 @@ def scan_session(
             outlier_neighbors=options.outlier_neighbors,
             outlier_std_ratio=options.outlier_std_ratio,
             normals_radius_mm=options.normals_radius_mm,
+            isolated_radius_mm=options.isolated_radius_mm,
+            isolated_min_neighbors=options.isolated_min_neighbors,
         )
         t4 = time.perf_counter()
         n_points = len(cloud.point.positions)

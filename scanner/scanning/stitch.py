@@ -72,8 +72,12 @@ def filter_cloud(
     outlier_neighbors: int = 0,
     outlier_std_ratio: float = 2.0,
     normals_radius_mm: float | None = None,
+    isolated_radius_mm: float | None = None,
+    isolated_min_neighbors: int = 3,
 ) -> o3d.t.geometry.PointCloud:
-    """Voxel downsampling, statistical outlier removal and normals, each optional, in that order.
+    """Voxel downsampling, statistical outlier removal, removal of isolated points (fewer than
+    ``isolated_min_neighbors`` others within ``isolated_radius_mm``) and normals, each
+    optional, in that order.
 
     Downsampling averages the attributes of each voxel (integer ids included, so ids of merged
     points are only indicative).
@@ -87,6 +91,10 @@ def filter_cloud(
         n0 = len(out.point.positions)
         out, _ = out.remove_statistical_outliers(int(outlier_neighbors), float(outlier_std_ratio))
         log.info("outliers: %d -> %d points", n0, len(out.point.positions))
+    if isolated_radius_mm is not None and isolated_radius_mm > 0 and len(out.point.positions):
+        n0 = len(out.point.positions)
+        out, _ = out.remove_radius_outliers(int(isolated_min_neighbors), float(isolated_radius_mm))
+        log.info("isolated points: %d -> %d points", n0, len(out.point.positions))
     if normals_radius_mm is not None and normals_radius_mm > 0 and len(out.point.positions) >= 3:
         out.estimate_normals(max_nn=30, radius=float(normals_radius_mm))
     return out

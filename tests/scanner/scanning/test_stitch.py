@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from metrology.fits import fit_sphere
-from scanner.scanning.stitch import incidence_cosines, refine_sweeps
+from scanner.scanning.stitch import build_cloud, filter_cloud, incidence_cosines, refine_sweeps
 
 RADIUS_MM = 12.7
 CENTER_MM = np.array([600.0, 60.0, 40.0])
@@ -123,3 +123,13 @@ def test_icp_leaves_a_sweep_alone_along_directions_its_overlap_does_not_pin():
     assert c.applied
     shift = out[sid == 1].mean(axis=0) - moved.mean(axis=0)
     np.testing.assert_allclose(shift, [0.4, 0.3, 0.0], atol=0.01)
+
+
+def test_isolated_points_go_and_the_surface_stays():
+    rng = np.random.default_rng(10)
+    surface = _grid(rng, (0, 30), (0, 20), 5.0)
+    strays = np.array([[15.0, 10.0, 52.0], [100.0, 0.0, 5.0]])
+    cloud = build_cloud(np.concatenate([surface, strays]))
+    kept = filter_cloud(cloud, isolated_radius_mm=2.0).point.positions.numpy()
+    assert len(kept) == len(surface)
+    assert np.abs(kept[:, 2] - 5.0).max() < 0.1

@@ -343,7 +343,7 @@ def test_a_recipe_with_planned_sweeps_runs_the_full_object_job(
     assert sum(len(p) for p in paths) == planned.plan.frames
     options = seen["options"]
     assert options.icp and options.crop_min_z_mm == pytest.approx(0.5)
-    assert options.outlier_neighbors > 0
+    assert options.isolated_radius_mm is not None
     assert JobLayout.of(ctx.work_dir).inspection.is_file()
     assert outcome.results_um[1] is not None and outcome.results_um[1] < 40.0  # rms, 20 µm noise
 
