@@ -35,6 +35,16 @@ def _triple(text: str) -> tuple[float, float, float]:
     return values  # type: ignore[return-value]
 
 
+def _pair(text: str) -> tuple[float, float]:
+    try:
+        lo, hi = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected MIN,MAX in mm, got {text!r}") from None
+    if not 0 <= lo < hi:
+        raise argparse.ArgumentTypeError(f"expected 0 <= MIN < MAX, got {text!r}")
+    return lo, hi
+
+
 def _share(text: str) -> float:
     try:
         value = float(text)
@@ -72,6 +82,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--step-mm", type=float, default=0.5, help="travel between profiles")
     p.add_argument("--max-sweeps", type=int, default=12)
     p.add_argument(
+        "--reach-mm", type=_pair, default=(0.0, float("inf")), metavar="MIN,MAX",
+        help="horizontal distance of the flange from the robot's base axis it can reach "
+        "(default: anywhere)",
+    )  # fmt: skip
+    p.add_argument(
         "--max-incidence-deg", type=float, default=70.0,
         help="largest angle between a surface's normal and the camera or the laser",
     )  # fmt: skip
@@ -90,6 +105,7 @@ def run(args: argparse.Namespace) -> int:
         max_sweeps=args.max_sweeps,
         step_mm=args.step_mm,
         limits=limits,
+        reach_mm=args.reach_mm,
     )
     cell = args.cell if args.cell is not None or args.calibration is not None else "modern"
     done = stages.plan_scan(
