@@ -23,16 +23,6 @@ from scanner.virtual_cell.render import Laser, Scene, stripe_truth
 from scanner.virtual_cell.scene import MeshSurface, object_from_euler
 
 
-def _sensor(cell) -> SensorGeometry:
-    return SensorGeometry(
-        cell.camera_model(),
-        cell.laser.normal,
-        cell.laser.d,
-        cell.laser.origin,
-        cell.robot.flange_from_cam_matrix(),
-    )
-
-
 def _sweep_over(sensor: SensorGeometry, centre, tilt_deg: float, yaw_deg: float, step: float):
     rot = (
         Rotation.from_euler("z", yaw_deg, degrees=True).as_matrix()
@@ -51,7 +41,7 @@ def test_predicted_coverage_matches_what_the_renderer_lights_and_sees(tilt, yaw)
     """Every frame's exact stripe (visible, lit) lies on points the model calls measured, and
     the model's measured points are those the stripes pass."""
     cell = load_cell("modern")
-    sensor = _sensor(cell)
+    sensor = cell.sensor_geometry()
     centre = np.array([600.0, 100.0, 0.0])
     part = SAMPLE_PARTS["bracket"]()
     lo, hi = part.bounds()
@@ -84,7 +74,7 @@ def test_predicted_coverage_matches_what_the_renderer_lights_and_sees(tilt, yaw)
 
 def test_a_nadir_sweep_measures_a_box_top_and_not_its_walls_or_bottom():
     cell = load_cell("modern")
-    sensor = _sensor(cell)
+    sensor = cell.sensor_geometry()
     box = box_mesh((60.0, 40.0, 30.0)).transformed(
         object_from_euler(np.array([570.0, 80.0, 0.0]), np.zeros(3))
     )

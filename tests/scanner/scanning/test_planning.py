@@ -5,21 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from scanner.scanning.coverage import SensorGeometry
 from scanner.scanning.planning import PlanConfig, plan_sweeps
 from scanner.virtual_cell import load_cell
 from scanner.virtual_cell.parts import SAMPLE_PARTS
 from scanner.virtual_cell.scene import object_from_euler
-
-
-def _sensor(cell) -> SensorGeometry:
-    return SensorGeometry(
-        cell.camera_model(),
-        cell.laser.normal,
-        cell.laser.d,
-        cell.laser.origin,
-        cell.robot.flange_from_cam_matrix(),
-    )
 
 
 def _placed(name: str, xy=(600.0, 100.0), yaw_deg: float = 0.0):
@@ -33,7 +22,7 @@ def _placed(name: str, xy=(600.0, 100.0), yaw_deg: float = 0.0):
 @pytest.mark.parametrize("name", sorted(SAMPLE_PARTS))
 def test_the_sample_parts_are_planned_to_95_percent(cell_name, name):
     cell = load_cell(cell_name)
-    plan = plan_sweeps(_sensor(cell), _placed(name, yaw_deg=17.0), PlanConfig(step_mm=1.0))
+    plan = plan_sweeps(cell.sensor_geometry(), _placed(name, yaw_deg=17.0), PlanConfig(step_mm=1.0))
     assert plan, plan.reason
     assert plan.coverage >= 0.95
     assert len(plan.sweeps) <= 8
@@ -49,9 +38,9 @@ def test_the_sample_parts_are_planned_to_95_percent(cell_name, name):
 
 def test_a_plan_that_cannot_reach_its_target_is_falsy_and_says_why():
     cell = load_cell("modern")
-    plan = plan_sweeps(_sensor(cell), _placed("flange"), PlanConfig(max_sweeps=2))
+    plan = plan_sweeps(cell.sensor_geometry(), _placed("flange"), PlanConfig(max_sweeps=2))
     assert not plan
     assert "max_sweeps (2)" in plan.reason
-    far = plan_sweeps(_sensor(cell), _placed("bracket"), PlanConfig(reach_mm=(0.0, 100.0)))
+    far = plan_sweeps(cell.sensor_geometry(), _placed("bracket"), PlanConfig(reach_mm=(0.0, 100.0)))
     assert not far and far.sweeps == ()
     assert far.reason == "no candidate sweep within reach"
