@@ -161,7 +161,7 @@ def run_full_object(
     out.mkdir(parents=True, exist_ok=True)
     result = FullObjectResult(out_dir=out)
     clock = stages.StageClock(result.seconds)
-    read_mesh(part_path)  # refuse a bad mesh before anything is written
+    part = read_mesh(part_path)  # refuse a bad mesh before anything is written
 
     def step(name: str, fn: Any) -> Any:
         index = STEPS.index(name) + 1
@@ -208,7 +208,7 @@ def run_full_object(
             [sessions / "sweep"],
             sessions / "calibration_true.json",
             cloud_path,
-            options=full_object_scan_options(planned.base_from_part, read_mesh(part_path), workers),
+            options=full_object_scan_options(planned.base_from_part, part, workers),
             progress=progress,
         ),
     )
@@ -231,11 +231,7 @@ def run_full_object(
         samples = np.load(out / "plan" / "coverage.npz")
         cloud = read_cloud(cloud_path)
         pts = cloud.point.positions.numpy().astype(np.float64)
-        sweep_of = (
-            cloud.point["sweep_id"].numpy().reshape(-1).astype(np.int64)
-            if "sweep_id" in cloud.point
-            else np.zeros(len(pts), dtype=np.int64)
-        )
+        sweep_of = cloud.point["sweep_id"].numpy().reshape(-1).astype(np.int64)
         n_c = inspected.result.alignment.nominal_from_cloud
         pts_part = pts @ n_c[:3, :3].T + n_c[:3, 3]
         radius = max(step_mm, 0.5)
@@ -249,7 +245,7 @@ def run_full_object(
             from_cloud[seen] = sweep_of[nearest]
         write_coverage_map(
             out / "coverage_achieved.png",
-            read_mesh(part_path),
+            part,
             points_part,
             visible,
             np.where(visible, from_cloud, -1),

@@ -73,7 +73,7 @@ def write_scan_plan(
     """Write ``plan.json`` and ``sweeps.csv`` into ``folder``; returns their paths."""
     root = Path(folder)
     root.mkdir(parents=True, exist_ok=True)
-    rotation = RotationConvention.parse(str(getattr(rotation, "value", rotation)))
+    rotation = RotationConvention.parse(rotation)
     columns = rotation_columns(rotation)
     rows = [["id", "sweep", "x", "y", "z", *columns]]
     fid = 0

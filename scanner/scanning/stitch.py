@@ -177,13 +177,16 @@ def _legacy(points: NDArray, voxel_mm: float, normals_radius_mm: float) -> o3d.g
 
 
 def _overlap(
-    source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, reach_mm: float
+    source: o3d.geometry.PointCloud,
+    target: o3d.geometry.PointCloud,
+    tree: cKDTree,
+    reach_mm: float,
 ) -> NDArray[np.int64]:
     """Indices of source points on surface the target also measured: a target point within
-    ``reach_mm`` with a normal within 20 deg (not an edge, a wall or the other side)."""
+    ``reach_mm`` with a normal within 20 deg (not an edge, a wall or the other side).
+    ``tree`` indexes the target's points."""
     src = np.asarray(source.points)
-    tgt = np.asarray(target.points)
-    dist, idx = cKDTree(tgt).query(src, distance_upper_bound=reach_mm)
+    dist, idx = tree.query(src, distance_upper_bound=reach_mm)
     near = np.isfinite(dist)
     cos = np.zeros(len(src))
     cos[near] = np.abs(
@@ -198,6 +201,7 @@ def _pinned_icp(
     source: NDArray,
     target: NDArray,
     target_normals: NDArray,
+    tree: cKDTree,
     reach_mm: float,
     min_conditioning: float,
     iterations: int = 30,
@@ -212,9 +216,9 @@ def _pinned_icp(
     2016). ``scipy.optimize.least_squares`` cannot leave an unobservable direction alone,
     hence the explicit iteration.
 
-    Returns ``(source_corrected_from_source (4, 4), inlier rmse, directions pinned)``.
+    ``tree`` indexes ``target``. Returns ``(source_corrected_from_source (4, 4), inlier rmse,
+    directions pinned)``.
     """
-    tree = cKDTree(target)
     transform = np.eye(4)
     pinned = 0
     rmse = 0.0
@@ -317,7 +321,8 @@ def refine_sweeps(
             )
             ref_mask |= mask
             continue
-        shared = _overlap(source, target, max_distance_mm)
+        tree = cKDTree(np.asarray(target.points))
+        shared = _overlap(source, target, tree, max_distance_mm)
         fitness = len(shared) / len(source.points)
         note = ""
         t = np.eye(4)
@@ -329,6 +334,7 @@ def refine_sweeps(
                 np.asarray(source.points)[shared],
                 np.asarray(target.points),
                 np.asarray(target.normals),
+                tree,
                 max_distance_mm,
                 min_conditioning,
             )
@@ -338,7 +344,7 @@ def refine_sweeps(
                 log.info("sweep %d: the overlap pins %d of 6 directions", s, pinned)
         trans = float(np.linalg.norm(t[:3, 3]))
         rot = angle_between_rotations_deg(np.eye(3), t[:3, :3])
-        applied = fitness >= min_fitness and not note
+        applied = not note
         if applied:
             pts[mask] = (pts[mask] - centre) @ t[:3, :3].T + t[:3, 3] + centre
             if trans > warn_translation_mm or rot > warn_rotation_deg:

@@ -43,7 +43,7 @@ from scanner.core.fileio import InputError
 from scanner.formats.calibration_file import CalibrationQuality, read_calibration
 from scanner.formats.layout import JobLayout
 from scanner.formats.meshes import read_mesh
-from scanner.formats.scan_plan import read_scan_plan
+from scanner.formats.scan_plan import ScanPlanFile, read_scan_plan
 from scanner.virtual_cell.cell import CellConfig, load_cell
 
 __all__ = [
@@ -200,13 +200,9 @@ class VirtualCellSource:
         out = ctx.work_dir / "capture"
         sweep_paths = None
         if kind == "sweep" and recipe is not None and recipe.sweeps:
-            planned = _call(read_scan_plan, Path(recipe.sweeps))
-            if planned.base_from_part is None:
-                raise JobError(
-                    ErrorCode.BAD_INPUT, f"{recipe.sweeps}: the plan does not place a part"
-                )
+            planned, base_from_part = _planned_part(recipe.sweeps)
             part_cell = _call(load_cell, cell)
-            cell = cell_with_part(part_cell, Path(recipe.nominal), planned.base_from_part)
+            cell = cell_with_part(part_cell, Path(recipe.nominal), base_from_part)
             sweep_paths = planned.base_from_flange
         _call(
             stages.simulate,
@@ -276,6 +272,14 @@ def _call(func: Callable[..., T], *args: Any, **kwargs: Any) -> T:
     except (InputError, ValueError, FileNotFoundError) as exc:
         # The stages report bad input (too few frames, target not found...) as ValueError.
         raise JobError(ErrorCode.BAD_INPUT, " ".join(str(exc).split())) from exc
+
+
+def _planned_part(folder: str) -> tuple[ScanPlanFile, np.ndarray]:
+    """A recipe's scan plan and where it puts the part; a plan without a part is bad input."""
+    planned = _call(read_scan_plan, Path(folder))
+    if planned.base_from_part is None:
+        raise JobError(ErrorCode.BAD_INPUT, f"{folder}: the plan does not place a part")
+    return planned, planned.base_from_part
 
 
 def _mm_to_um(value: float | None) -> float | None:
@@ -367,14 +371,8 @@ class PipelineJobs:
         spec = _call(resolve_config, recipe.inspect_spec, "inspect") if recipe.nominal else None
         options = None
         if recipe.sweeps:
-            planned = _call(read_scan_plan, Path(recipe.sweeps))
-            if planned.base_from_part is None:
-                raise JobError(
-                    ErrorCode.BAD_INPUT, f"{recipe.sweeps}: the plan does not place a part"
-                )
-            options = full_object_scan_options(
-                planned.base_from_part, _call(read_mesh, recipe.nominal)
-            )
+            _, base_from_part = _planned_part(recipe.sweeps)
+            options = full_object_scan_options(base_from_part, _call(read_mesh, recipe.nominal))
         ctx.session_path = self.source.acquire("sweep", ctx, recipe)
         ctx.check_cancelled()
         job = JobLayout.of(ctx.work_dir)
