@@ -46,8 +46,8 @@ log = logging.getLogger(__name__)
 
 STEPS = ("plan", "capture", "scan", "inspect", "coverage")
 
-#: Points this close above the table are the table (or the part's edge on it): left out.
-TABLE_CROP_MM = 0.5
+#: The cloud is kept within the planned part's box grown by this (placement and robot errors).
+REGION_MARGIN_MM = 5.0
 
 
 @dataclass
@@ -105,17 +105,20 @@ def cell_with_part(cell: CellConfig, part_path: Path, base_from_part: np.ndarray
 def full_object_scan_options(
     base_from_part: np.ndarray, part: TriangleMesh, workers: int = 2
 ) -> ScanOptions:
-    """How planned sweeps are scanned: precise stripes, ICP between sweeps, the table the part
-    stands on (the lowest point of the part where the plan put it) left out, and isolated
+    """How planned sweeps are scanned: precise stripes, ICP between sweeps, only the box where
+    the plan put the part (grown by ``REGION_MARGIN_MM``), the table the part stands on (the
+    lowest point of the part where the plan put it) left out, and isolated
     points removed (fewer than 3 others within 2 mm: a single stray point tens of mm off would
     otherwise dominate the cloud's RMS against the CAD; a statistical filter would also thin
     the sparse, legitimate points of bore walls seen at a slant)."""
-    table_z = float(part.transformed(base_from_part).bounds()[0][2])
+    lo, hi = part.transformed(base_from_part).bounds()
+    table_z = float(lo[2])
     return ScanOptions(
         mode="precise",
         icp=True,
         workers=workers,
-        crop_min_z_mm=table_z + TABLE_CROP_MM,
+        table_z_mm=table_z,
+        region_mm=(tuple(lo - REGION_MARGIN_MM), tuple(hi + REGION_MARGIN_MM)),
         isolated_radius_mm=2.0,
         isolated_min_neighbors=3,
     )

@@ -96,9 +96,14 @@ class ScanOptions:
     isolated_radius_mm : float or None
         Points with fewer than ``isolated_min_neighbors`` others within this radius are left
         out (single strays far from any surface); ``None``: off.
-    crop_min_z_mm : float or None
-        Points at or below this height of the base frame are left out (the table a part
-        stands on), before the sweeps are refined against each other.
+    table_z_mm : float or None
+        Height of the table a part stands on (base frame): its points are left out, before
+        the sweeps are refined against each other. The cut is the table's own measured level
+        plus five robust sigmas of its points' heights (at least 0.5 mm above ``table_z_mm``),
+        so a sensor that sees the table noisier or offset still loses all of it.
+    region_mm : ((x, y, z), (x, y, z)) or None
+        Lower and upper corners of a base-frame box: points outside it are left out (a job
+        that knows where its part stands ignores the rest of the cell).
     icp : bool
         Refine overlapping sweeps against each other (reports the corrections).
     icp_max_distance_mm, icp_warn_translation_mm, icp_warn_rotation_deg
@@ -123,7 +128,8 @@ class ScanOptions:
     normals_radius_mm: float | None = None
     isolated_radius_mm: float | None = None
     isolated_min_neighbors: int = 3
-    crop_min_z_mm: float | None = None
+    table_z_mm: float | None = None
+    region_mm: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
     icp: bool = False
     icp_max_distance_mm: float = 1.0
     icp_warn_translation_mm: float = 0.2
@@ -503,6 +509,23 @@ def _drop_flagged(
     return points[keep], {k: v[keep] for k, v in attributes.items()}, removed
 
 
+#: Heights within this of the given table level are taken as the table's candidates.
+_TABLE_BAND_MM = 3.0
+
+
+def table_cut_mm(z_mm: NDArray, table_z_mm: float) -> float:
+    """Height below which points are the table: its measured level (median of the heights
+    within 3 mm of ``table_z_mm``) plus five robust sigmas (1.4826 MAD), at least 0.5 mm
+    above ``table_z_mm``."""
+    near = z_mm[np.abs(z_mm - table_z_mm) < _TABLE_BAND_MM]
+    floor = table_z_mm + 0.5
+    if len(near) < 50:
+        return floor
+    level = float(np.median(near))
+    sigma = 1.4826 * float(np.median(np.abs(near - level)))
+    return max(floor, level + 5.0 * sigma)
+
+
 def scan_session(
     session_or_sessions: Any,
     calibration: Calibration | str | os.PathLike[str],
@@ -591,8 +614,13 @@ def scan_session(
         uv = np.column_stack([profiles["u"], profiles["v"]])
         points = tri.points_base(uv, profiles["frame"], poses)
         ok = np.all(np.isfinite(points), axis=1)
-        if options.crop_min_z_mm is not None:
-            ok &= np.where(ok, points[:, 2], -np.inf) > options.crop_min_z_mm
+        if options.region_mm is not None:
+            lo, hi = (np.asarray(c, dtype=np.float64) for c in options.region_mm)
+            inside = np.all((points >= lo) & (points <= hi), axis=1)
+            ok &= np.where(ok, inside, False)
+        if options.table_z_mm is not None:
+            z = np.where(ok, points[:, 2], -np.inf)
+            ok &= z > table_cut_mm(z[ok], options.table_z_mm)
         frame_pos = profiles["frame"][ok]
         sweep_arr = np.asarray(sweep_of, dtype=np.int32)[frame_pos]
         points = points[ok]

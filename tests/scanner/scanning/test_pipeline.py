@@ -11,7 +11,7 @@ from scanner.core.fileio import InputError
 from scanner.formats.calibration_file import read_calibration, write_calibration
 from scanner.formats.clouds import read_cloud, read_ply_metadata
 from scanner.formats.session import read_session, write_session
-from scanner.scanning.pipeline import ScanOptions, scan_session
+from scanner.scanning.pipeline import ScanOptions, scan_session, table_cut_mm
 from scanner.virtual_cell.analytic import TableStepScene, write_table_step_sweep
 
 
@@ -271,7 +271,7 @@ def test_crop_leaves_out_the_table_and_keeps_the_part(sweep):
     session, cal_path, scene = sweep
     whole = scan_session(session, cal_path, ScanOptions(workers=1), None, progress=False)
     cropped = scan_session(
-        session, cal_path, ScanOptions(workers=1, crop_min_z_mm=0.5), None, progress=False
+        session, cal_path, ScanOptions(workers=1, table_z_mm=0.0), None, progress=False
     )
     z_all = whole.cloud.point.positions.numpy()[:, 2]
     z = cropped.cloud.point.positions.numpy()[:, 2]
@@ -279,3 +279,28 @@ def test_crop_leaves_out_the_table_and_keeps_the_part(sweep):
     on_block = np.abs(z_all - scene.step_mm) < 1.0
     assert on_block.sum() > 100
     assert len(z) == np.count_nonzero(z_all > 0.5)
+
+
+def test_the_table_cut_follows_the_tables_own_measured_level():
+    """A sensor that sees the table 0.6 mm high and noisier loses all of it, not its upper
+    half; a clean table keeps the 0.5 mm floor; the part above stays."""
+    rng = np.random.default_rng(12)
+    table = 0.6 + rng.normal(0.0, 0.1, 20_000)
+    part = rng.uniform(2.0, 40.0, 5_000)
+    cut = table_cut_mm(np.concatenate([table, part]), 0.0)
+    assert np.mean(table > cut) < 1e-3
+    assert np.all(part > cut)
+    clean = rng.normal(0.0, 0.02, 20_000)
+    assert table_cut_mm(clean, 0.0) == pytest.approx(0.5)
+
+
+def test_a_region_keeps_only_the_points_inside_its_box(sweep):
+    session, cal_path, _ = sweep
+    box = ((-5.0, -1e3, -1e3), (5.0, 1e3, 1e3))
+    options = ScanOptions(workers=1, region_mm=box)
+    kept = scan_session(session, cal_path, options, None, progress=False)
+    whole = scan_session(session, cal_path, ScanOptions(workers=1), None, progress=False)
+    x = kept.cloud.point.positions.numpy()[:, 0]
+    x_all = whole.cloud.point.positions.numpy()[:, 0]
+    assert len(x) == np.count_nonzero(np.abs(x_all) <= 5.0) > 0
+    assert np.all(np.abs(x) <= 5.0)

@@ -342,8 +342,12 @@ def test_a_recipe_with_planned_sweeps_runs_the_full_object_job(
     assert len(paths) == len(planned.plan.sweeps)
     assert sum(len(p) for p in paths) == planned.plan.frames
     options = seen["options"]
-    assert options.icp and options.crop_min_z_mm == pytest.approx(0.5)
+    assert options.icp and options.table_z_mm == pytest.approx(0.0, abs=1e-9)
     assert options.isolated_radius_mm is not None
+    lo, hi = planned.plan.points_base.min(axis=0), planned.plan.points_base.max(axis=0)
+    assert np.all(np.asarray(options.region_mm[0]) < lo) and np.all(
+        np.asarray(options.region_mm[1]) > hi
+    )
     assert JobLayout.of(ctx.work_dir).inspection.is_file()
     assert outcome.results_um[1] is not None and outcome.results_um[1] < 40.0  # rms, 20 µm noise
 
