@@ -26,6 +26,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from calibration.covariance import estimate_covariance
 from calibration.detection.detect import detect_target
 from calibration.detection.observations import TargetObservation
 from calibration.extrinsics import estimate_pose, paper_pose, project_target
@@ -380,6 +381,7 @@ def calibrate_session(
 
     # 5. light plane (none from a session without laser images: a camera-only calibration)
     plane_res: LightPlaneResult | None = None
+    laser_views: list[LaserView] = []
     plane_paper = None
     skipped: list[dict[str, Any]] = []
     if not camera_only:
@@ -496,9 +498,35 @@ def calibrate_session(
     if he.camera is not None and refine_intrinsics:
         camera = he.camera
     timings["hand_eye_s"] = time.perf_counter() - t1
+
+    # 7. the joint uncertainty the file carries (the default method's chain only)
+    covariance = None
+    covariance_warnings: list[str] = []
+    if method == "default":
+        stage("uncertainty")
+        t1 = time.perf_counter()
+        plane_frames = set() if plane_res is None else {p["frame_id"] for p in plane_res.per_frame}
+        try:
+            covariance = estimate_covariance(
+                camera,
+                intr,
+                {
+                    f.id: (observations[f.id].points_px, observations[f.id].points_target)
+                    for f in found
+                    if f.id in cam_from_target
+                },
+                [v for v in laser_views if v.frame_id in plane_frames],
+                plane_res,
+                views,
+                he,
+            )
+        except (ValueError, np.linalg.LinAlgError) as exc:
+            # optional: the calibration stands without it, and says so
+            covariance_warnings.append(f"no covariance estimated: {exc}")
+        timings["uncertainty_s"] = time.perf_counter() - t1
     timings["total_s"] = time.perf_counter() - t0
 
-    warnings = list(intr.warnings) + list(he.warnings)
+    warnings = list(intr.warnings) + list(he.warnings) + covariance_warnings
     verdict, check = _verdict(intr, plane_res, he, rejected)
     per_view = {found[i].id: float(r) for i, r in zip(intr.view_indices, intr.per_view_rms_px)}
     quality: dict[str, Any] = {
@@ -541,6 +569,7 @@ def calibrate_session(
         light_plane=None if plane_res is None else plane_res.plane,
         flange_from_cam=he.flange_from_cam,  # type: ignore[arg-type]
         quality=quality,
+        covariance=covariance,
     )
     return CalibrationResult(
         calib,

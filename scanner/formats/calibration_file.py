@@ -7,6 +7,7 @@ The format is a public contract (``shared/spec/interfaces.md``, section 2)::
      "light_plane": {"normal": [nx, ny, nz], "d": d},     # camera frame, normal . p + d = 0
                                                           # (null: camera-only calibration)
      "laser_origin_cam": [x, y, z],                       # optional: apex of the laser fan
+     "covariance": {...},                                 # optional: see calibration_covariance
      "flange_from_cam": 4x4,
      "quality": {...free-form...}}
 
@@ -17,6 +18,7 @@ file does not give them) and the whole record as written, for the reports.
 
 from __future__ import annotations
 
+import logging
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -28,10 +30,12 @@ from numpy.typing import NDArray
 
 from scanner.core.conventions import check_transform
 from scanner.core.fileio import InputError, json_int, read_json_object, write_json_atomic
+from scanner.formats.calibration_covariance import CalibrationCovariance, apply_correction
 
 __all__ = [
     "FORMAT",
     "Calibration",
+    "CalibrationCovariance",
     "CalibrationQuality",
     "LightPlane",
     "read_calibration",
@@ -39,6 +43,8 @@ __all__ = [
 ]
 
 FORMAT = "scan-calibration/1"
+
+log = logging.getLogger(__name__)
 
 # Physical bounds: a value beyond them is a typing, unit or file error, not a camera.
 #: Focal length, px (a 100 Mpx sensor behind a long telephoto stays far below).
@@ -170,6 +176,8 @@ class Calibration:
     quality: CalibrationQuality = field(default_factory=CalibrationQuality)
     laser_origin_cam: NDArray | None = None
     """The apex of the laser fan, camera frame, mm (optional)."""
+    covariance: CalibrationCovariance | None = None
+    """Uncertainty of the estimated values and the robot's repeatability (optional)."""
 
     def __post_init__(self) -> None:
         self.K = np.asarray(self.K, dtype=np.float64)
@@ -226,12 +234,34 @@ class Calibration:
             )
         return self.light_plane
 
+    def corrected(self, delta: NDArray) -> Calibration:
+        """This calibration with a correction ``delta`` over
+        :data:`~scanner.formats.calibration_covariance.PARAMETERS` applied (a draw of its
+        uncertainty); the covariance stays as it is."""
+        plane = None if self.light_plane is None else (self.light_plane.normal, self.light_plane.d)
+        K, dist, plane2, flange_from_cam = apply_correction(
+            self.K, self.dist, plane, self.flange_from_cam, delta
+        )
+        return Calibration(
+            width=self.width,
+            height=self.height,
+            K=K,
+            dist=dist,
+            light_plane=None if plane2 is None else LightPlane(*plane2),
+            flange_from_cam=flange_from_cam,
+            quality=self.quality,
+            laser_origin_cam=self.laser_origin_cam,
+            covariance=self.covariance,
+        )
+
     def to_json(self) -> dict[str, Any]:
-        extra = (
+        extra: dict[str, Any] = (
             {}
             if self.laser_origin_cam is None
             else {"laser_origin_cam": self.laser_origin_cam.tolist()}
         )
+        if self.covariance is not None:
+            extra["covariance"] = self.covariance.to_json()
         return {
             "format": FORMAT,
             "camera": {
@@ -254,6 +284,18 @@ def write_calibration(path: str | os.PathLike[str], calibration: Calibration) ->
     write_json_atomic(path, calibration.to_json())
 
 
+def _covariance_or_none(path: Path, record: Any) -> CalibrationCovariance | None:
+    """The optional ``covariance`` key; one this reader cannot use (another tool's, or
+    damaged) is ignored with a warning: the calibration itself stays valid."""
+    if record is None:
+        return None
+    try:
+        return CalibrationCovariance.from_json(record)
+    except (TypeError, ValueError) as exc:
+        log.warning("%s: covariance ignored (%s): measurements get no calibration share", path, exc)
+        return None
+
+
 def read_calibration(path: str | os.PathLike[str]) -> Calibration:
     """Read and validate a calibration file.
 
@@ -270,6 +312,7 @@ def read_calibration(path: str | os.PathLike[str]) -> Calibration:
         cam = obj["camera"]
         plane = obj.get("light_plane")
         origin = obj.get("laser_origin_cam")
+        covariance = _covariance_or_none(p, obj.get("covariance"))
         return Calibration(
             width=json_int(cam["width"], "camera.width"),
             height=json_int(cam["height"], "camera.height"),
@@ -279,6 +322,7 @@ def read_calibration(path: str | os.PathLike[str]) -> Calibration:
             if plane is None
             else LightPlane(np.asarray(plane["normal"], dtype=np.float64), float(plane["d"])),
             laser_origin_cam=None if origin is None else np.asarray(origin, dtype=np.float64),
+            covariance=covariance,
             flange_from_cam=np.asarray(obj["flange_from_cam"], dtype=np.float64),
             quality=CalibrationQuality.from_json(obj.get("quality")),
         )

@@ -14,6 +14,7 @@ from calibration.pipeline import calibrate_session, stripe_pixel_at, target_exte
 from scanner.core.conventions import angle_between_rotations_deg
 from scanner.core.planes import plane_errors
 from scanner.core.targets import ChessboardTarget, CircleGridTarget
+from scanner.formats.calibration_covariance import PARAMETERS, camera_correction, plane_correction
 from scanner.formats.calibration_file import read_calibration
 from scanner.formats.session import Frame, Session
 from tests.conftest import REPO_ROOT, real_data_subdir
@@ -95,6 +96,25 @@ def test_virtual_cell_default_calibration_matches_truth(modern_cell):
     ):
         assert key in q
     json.dumps(cal.to_json())  # the quality record is plain JSON
+    # Issue #19: the file carries the calibration's covariance, and the errors lie within it
+    # (seed 0: |z| at most 1.3 for the plane and hand-eye terms).
+    cov = cal.covariance
+    assert cov is not None and "intrinsics through the chain" in cov.method
+    err = np.concatenate(
+        [
+            plane_correction(
+                truth.light_plane.normal,
+                truth.light_plane.d,
+                cal.light_plane.normal,
+                cal.light_plane.d,
+            ),
+            camera_correction(truth.flange_from_cam, cal.flange_from_cam),
+        ]
+    )
+    sd = np.array([cov.std[p] for p in PARAMETERS[9:]])
+    assert np.all(np.abs(err) < 4 * sd)
+    assert cov.std["plane_d"] < 0.02 and cov.std["cam_tz"] < 0.05
+    assert cov.robot_translation_mm == pytest.approx(0.02, rel=0.5)
 
 
 @pytest.mark.slow
