@@ -34,6 +34,7 @@ from tqdm import tqdm
 from calibration.detection.conics import fit_conic, fit_line, line_conic_intersections
 from calibration.detection.detect import detect_target
 from calibration.extrinsics import estimate_pose
+from metrology.budget import Contribution, Uncertainty
 from scanner.core.camera import CameraModel, intersect_rays_with_plane
 from scanner.core.conventions import invert_transform, transform_points
 from scanner.core.fileio import InputError
@@ -43,7 +44,14 @@ from scanner.formats.calibration_file import Calibration
 from scanner.formats.session import Frame, Session
 from scanner.stripe.extract import StripeFlag, extract_stripe, orientation_from_calibration
 
-__all__ = ["EFCheckResult", "EFMeasurement", "EFTolerances", "measure_ef", "run_ef_check"]
+__all__ = [
+    "EFCheckResult",
+    "EFMeasurement",
+    "EFTolerances",
+    "ef_uncertainties",
+    "measure_ef",
+    "run_ef_check",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -69,11 +77,19 @@ class EFMeasurement:
     offset_from_o_mm: float = math.nan
     stripe_points: int = 0
     stripe_line_rms_px: float = math.nan
+    uncertainty: Uncertainty | None = None
+    """Of ``length_mm``: see :func:`ef_uncertainties`."""
 
     def to_json(self) -> dict[str, Any]:
         out: dict[str, Any] = {"id": self.id}
         if self.ok:
             out.update(length_mm=self.length_mm, error_mm=self.error_mm)
+            if self.uncertainty is not None:
+                out.update(
+                    u_mm=self.uncertainty.u,
+                    U_mm=self.uncertainty.U,
+                    uncertainty=self.uncertainty.to_json(),
+                )
         else:
             out.update(reason=self.reason)
 
@@ -446,4 +462,63 @@ def run_ef_check(
     if not result.valid:
         reasons = "; ".join(f"frame {m.id}: {m.reason}" for m in measurements[:3])
         raise InputError(session.root, f"EF could not be measured in any laser image ({reasons})")
+    ef_uncertainties(result.valid, calibration)
     return result
+
+
+def _length_with(calibration: Calibration, e_px: NDArray, f_px: NDArray) -> float:
+    """``|EF|`` (mm) that ``calibration`` gives for the distorted pixels of E and F."""
+    camera = CameraModel(calibration.width, calibration.height, calibration.K, calibration.dist)
+    plane = calibration.light_plane
+    ef_cam = intersect_rays_with_plane(camera.rays(np.array([e_px, f_px])), plane.normal, plane.d)  # type: ignore[union-attr]
+    return float(np.linalg.norm(ef_cam[0] - ef_cam[1]))
+
+
+def ef_uncertainties(measurements: list[EFMeasurement], calibration: Calibration) -> None:
+    """Give each measured ``|EF|`` its uncertainty (in place).
+
+    ``|EF|`` does not depend on the robot or the hand-eye (a rigid motion keeps lengths), so
+    two sources remain: the calibration (intrinsics and light plane, from the file's
+    covariance, linearised along its principal directions: E and F re-triangulated from the
+    same pixels) and the image (where the stripe and the ring were found, the stripe's
+    passage beside O): the scatter of ``|EF|`` over the session's images, a type A
+    evaluation of one image's repeatability (at least 3 images).
+    """
+    ok = [m for m in measurements if m.ok and m.e_px is not None and m.f_px is not None]
+    if not ok:
+        return
+    lengths = np.array([m.length_mm for m in ok])
+    image_u = float(np.std(lengths, ddof=1)) if len(ok) >= 3 else math.nan
+    cov = calibration.covariance
+    dirs = cov.principal_directions() if cov is not None else np.zeros((0, 18))
+    for m in ok:
+        budget: list[Contribution] = []
+        missing: list[str] = []
+        if cov is not None:
+            base = _length_with(calibration, m.e_px, m.f_px)  # type: ignore[arg-type]
+            deltas = [
+                _length_with(calibration.corrected(s), m.e_px, m.f_px) - base  # type: ignore[arg-type]
+                for s in dirs
+            ]
+            budget.append(
+                Contribution(
+                    "calibration",
+                    float(np.sqrt(np.sum(np.square(deltas)))),
+                    f"linearised over {len(dirs)} principal directions of the covariance",
+                )
+            )
+        else:
+            missing.append("calibration (the calibration file has no covariance)")
+        if math.isfinite(image_u):
+            budget.append(
+                Contribution(
+                    "image (stripe, ring, passage beside O)",
+                    image_u,
+                    f"standard deviation of |EF| over the session's {len(ok)} images",
+                )
+            )
+        else:
+            missing.append("image repeatability (fewer than 3 images measured)")
+        if budget:
+            u = float(np.sqrt(sum(c.u**2 for c in budget)))
+            m.uncertainty = Uncertainty(u, tuple(budget), not_included=tuple(missing))

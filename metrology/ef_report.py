@@ -22,7 +22,8 @@ PAPER_MEAN_REL_ERROR = 0.0021
 
 
 def table_iii_rows(result: EFCheckResult) -> list[list[object]]:
-    """Rows ``[real value, measured, absolute error, relative error %]`` and the average row."""
+    """Rows ``[real value, measured, U (k = 2), absolute error, relative error %]`` and the
+    average row."""
     rows: list[list[object]] = []
     for m in result.valid:
         rows.append(
@@ -30,6 +31,7 @@ def table_iii_rows(result: EFCheckResult) -> list[list[object]]:
                 m.id,
                 result.nominal_mm,
                 m.length_mm,
+                None if m.uncertainty is None else m.uncertainty.U,
                 abs(m.error_mm),
                 100.0 * abs(m.error_mm) / result.nominal_mm,
             ]
@@ -39,6 +41,7 @@ def table_iii_rows(result: EFCheckResult) -> list[list[object]]:
             "Average",
             result.nominal_mm,
             result.mean_length_mm,
+            None,
             result.mean_abs_error_mm,
             100.0 * result.mean_rel_error,
         ]
@@ -75,6 +78,7 @@ def write_ef_report(result: EFCheckResult, path: str | os.PathLike[str]) -> Path
                     "frame",
                     "real value (mm)",
                     "measured (mm)",
+                    "U, k = 2 (mm)",
                     "absolute error (mm)",
                     "relative error (%)",
                 ],
@@ -82,7 +86,9 @@ def write_ef_report(result: EFCheckResult, path: str | os.PathLike[str]) -> Path
                 decimals=3,
             ),
             note="E and F: the stripe's centre line against the largest ring's conic, triangulated "
-            "through the light plane and moved into the base frame with the robot pose.",
+            "through the light plane and moved into the base frame with the robot pose. U: the "
+            "calibration's covariance carried to |EF| and the scatter over the images "
+            "(docs/UNCERTAINTY.md).",
         )
     )
     if result.valid:

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from metrology.budget import Uncertainty
 from metrology.fits import (
     CircleFit,
     CylinderFit,
@@ -106,12 +107,16 @@ class MeasurementResult:
 
     spec: MeasurementSpec
     row: ToleranceRow
+    uncertainty: Uncertainty | None = None
+    """``u``, ``U`` and the budget (:mod:`metrology.uncertainty`), when evaluated."""
 
     def to_json(self) -> dict[str, Any]:
         out = {"type": self.spec.type, "features": list(self.spec.features)}
         if self.spec.point_mm is not None:
             out["point_mm"] = list(self.spec.point_mm)
         out.update(self.row.to_json())
+        if self.uncertainty is not None:
+            out["uncertainty"] = self.uncertainty.to_json()
         return out
 
 
@@ -139,11 +144,12 @@ class MeasurementReport(RowCounts):
 
     def summary(self) -> str:
         """One line: ``PASS: 9 passed, 0 failed (plan 'x', 1234567 points)``."""
-        extra = f", {self.n_not_judged} not judged" if self.n_not_judged else ""
+        extra = f", {self.n_not_proven} not proven" if self.n_not_proven else ""
+        extra += f", {self.n_not_judged} not judged" if self.n_not_judged else ""
         failed_fits = [f.spec.name for f in self.features if not f.ok]
         fits = f"; failed fits: {', '.join(failed_fits)}" if failed_fits else ""
         return (
-            f"{'PASS' if self.passed else 'FAIL'}: {self.n_passed} passed, {self.n_failed} "
+            f"{self.verdict.upper()}: {self.n_passed} passed, {self.n_failed} "
             f"failed{extra} (plan {self.plan.name!r}, {len(self.points_base)} points){fits}"
         )
 
@@ -151,10 +157,11 @@ class MeasurementReport(RowCounts):
         return {
             "format": FORMAT,
             "created_utc": self.created.astimezone(timezone.utc).isoformat(timespec="seconds"),
-            "result": "pass" if self.passed else "fail",
+            "result": self.verdict,
             "summary": {
                 "passed": self.n_passed,
                 "failed": self.n_failed,
+                "not_proven": self.n_not_proven,
                 "not_judged": self.n_not_judged,
                 "line": self.summary(),
             },
@@ -163,6 +170,7 @@ class MeasurementReport(RowCounts):
                 "path": self.plan_path,
                 "cell": self.plan.cell,
                 "description": self.plan.description,
+                "decision_rule": self.plan.decision_rule,
             },
             "cloud": {
                 "path": self.cloud_path,
@@ -200,11 +208,15 @@ def _flip_plane(fit: PlaneFit) -> PlaneFit:
     )
 
 
-def fit_feature(spec: FeatureSpec, points_base: NDArray, threshold_mm: float | None) -> Fit:
+def fit_feature(
+    spec: FeatureSpec, points_base: NDArray, threshold_mm: float | None, start: Fit | None = None
+) -> Fit:
     """Fit one feature to the ``(M, 3)`` points of its region, guided by its nominal.
 
     A nominal diameter bounds the RANSAC radii (±25 %), a nominal axis seeds the cylinder,
-    a nominal normal orients the plane's normal (and so the sign of its deviations).
+    a nominal normal orients the plane's normal (and so the sign of its deviations). ``start``,
+    an earlier fit of nearly the same points, starts a cylinder's least squares instead of
+    its search for an axis (refits of moved points, :mod:`metrology.uncertainty`).
     """
     n = len(points_base)
     if n < spec.min_points:
@@ -229,7 +241,12 @@ def fit_feature(spec: FeatureSpec, points_base: NDArray, threshold_mm: float | N
         )
     elif spec.kind == "cylinder":
         fit = fit_cylinder(
-            points_base, threshold_mm, radius_range_mm=radius_range, axis_hint=nom.axis, **kw
+            points_base,
+            threshold_mm,
+            radius_range_mm=radius_range,
+            axis_hint=nom.axis,
+            start=start if isinstance(start, CylinderFit) else None,
+            **kw,
         )
     elif spec.kind == "circle":
         fit = fit_circle(points_base, threshold_mm, radius_range_mm=radius_range, **kw)
@@ -320,8 +337,6 @@ def evaluate_measurement(spec: MeasurementSpec, fits: dict[str, Fit]) -> Toleran
         value, note = _distance(operands)
     elif spec.type == "diameter":
         value = 2.0 * float(used[0].radius_mm)  # type: ignore[attr-defined]
-        std = getattr(used[0], "radius_std_mm", math.nan)
-        note = f"u = {2 * std * 1000:.2f} µm (1 sigma)" if math.isfinite(std) else ""
     elif spec.type in ("flatness", "form"):
         fit = used[0]
         if spec.method == "min_zone":
@@ -426,7 +441,12 @@ def measure_cloud(
             log.warning("%s: %s fit failed: %s", spec.name, spec.kind, fit.reason)
         features.append(result)
     fits = {f.spec.name: f.fit for f in features}
-    measurements = [MeasurementResult(m, evaluate_measurement(m, fits)) for m in plan.measurements]
+    measurements = [
+        MeasurementResult(
+            m, dataclasses.replace(evaluate_measurement(m, fits), rule=plan.decision_rule)
+        )
+        for m in plan.measurements
+    ]
     return MeasurementReport(
         plan=plan,
         features=features,

@@ -10,6 +10,7 @@ Layout (all coordinates in the base frame, mm)::
 
     name = "sphere bar and plate"
     threshold_mm = 0.2                  # default RANSAC inlier distance of the fits
+    decision_rule = "simple"            # or "guarded": pass only inside tolerance - U
 
     [[features]]
     name = "sphere_1"
@@ -46,6 +47,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanner.core.config import load_config
+from scanner.core.tolerance import DECISION_RULES, DecisionRule
 
 __all__ = [
     "FEATURE_KINDS",
@@ -269,8 +271,16 @@ class Plan:
     cell: str = ""
     """The virtual or real cell the plan's coordinates belong to (informational)."""
     threshold_mm: float = 0.2
+    decision_rule: DecisionRule = "simple"
+    """How each measurement's status follows from its value, tolerance and uncertainty U
+    (:data:`scanner.core.tolerance.DecisionRule`): ``simple`` or ``guarded`` acceptance."""
 
     def __post_init__(self) -> None:
+        if self.decision_rule not in DECISION_RULES:
+            raise ValueError(
+                f"decision_rule: expected one of {', '.join(DECISION_RULES)}, "
+                f"got {self.decision_rule!r}"
+            )
         if not self.features:
             raise ValueError("features: expected at least one [[features]] table")
         if not (math.isfinite(self.threshold_mm) and self.threshold_mm >= 0):

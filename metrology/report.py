@@ -12,6 +12,7 @@ paths use the Agg/off-screen back ends only and never open a window.
 from __future__ import annotations
 
 import csv
+import html
 import io
 import logging
 import math
@@ -292,12 +293,13 @@ def _inputs_section(result: Any, verb: str, extra: list[tuple[str, Any]]) -> str
 def write_rows_csv(path: str | os.PathLike[str], rows: Sequence[ToleranceRow]) -> None:
     """The Nominal / Actual / Deviation / Tolerance / Status table as CSV (atomic)."""
     cols = ["name", "unit", "nominal", "actual", "deviation", "lower", "upper", "status", "note"]
+    cols += ["u", "U", "decision_rule"]
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
     writer.writerow(cols)
     for r in rows:
         j = r.to_json()
-        writer.writerow(["" if j[c] is None else spreadsheet_safe(j[c]) for c in cols])
+        writer.writerow(["" if j.get(c) is None else spreadsheet_safe(j[c]) for c in cols])
     with atomic_output(path) as tmp:
         tmp.write_text(buf.getvalue(), encoding="utf-8")
 
@@ -402,6 +404,9 @@ def measurement_html(report: Any, renderer_note: bool = True) -> str:
                 rep.figure(histogram_figure(residuals), "Orthogonal residuals of each fit"),
             )
         )
+    budgets = [m for m in report.measurements if m.uncertainty is not None]
+    if budgets:
+        body.append(rep.section("Uncertainty budgets", _budget_section(budgets)))
     body.append(rep.section("Fitted features", _features_table(report)))
     failed = [f for f in report.features if not f.fit]
     if failed:
@@ -418,6 +423,69 @@ def measurement_html(report: Any, renderer_note: bool = True) -> str:
         "".join(body),
         subtitle=report.plan.description,
         generated=report.created,
+    )
+
+
+def budget_figure(measurements: Sequence[Any]) -> Any:
+    """Stacked bars: each measurement's variance shares by source (Matplotlib Figure)."""
+    from matplotlib.figure import Figure
+
+    sources = list(dict.fromkeys(c.source for m in measurements for c in m.uncertainty.budget))
+    colours = ["#4a78b5", "#d98c2b", "#5aa469", "#b55d8e", "#8c8c8c", "#c44e52"]
+    fig = Figure(figsize=(9.0, 0.45 * len(measurements) + 1.4), dpi=100, layout="constrained")
+    ax = fig.add_subplot(1, 1, 1)
+    names = [m.spec.name for m in measurements]
+    left = np.zeros(len(measurements))
+    for k, source in enumerate(sources):
+        share = np.array(
+            [
+                sum(c.u**2 for c in m.uncertainty.budget if c.source == source)
+                / max(m.uncertainty.u**2, 1e-300)
+                * 100.0
+                for m in measurements
+            ]
+        )
+        ax.barh(names, share, left=left, color=colours[k % len(colours)], label=source)
+        left += share
+    ax.invert_yaxis()
+    ax.set_xlim(0, 100)
+    ax.set_xlabel("share of the variance u² (%)", fontsize=8)
+    ax.tick_params(labelsize=7.5)
+    ax.legend(fontsize=7.5, loc="lower center", bbox_to_anchor=(0.5, 1.0), ncol=len(sources))
+    return fig
+
+
+def _in_unit(value: float, unit: str) -> str:
+    """A small uncertainty as people read it: µm for mm values, else in the value's unit."""
+    return f"{value * 1000:.1f} µm" if unit == "mm" else f"{value:.4f} {unit}"
+
+
+def _budget_section(measurements: Sequence[Any]) -> str:
+    rows = []
+    for m in measurements:
+        unc, unit = m.uncertainty, m.row.unit
+        for c in unc.budget:
+            share = 100.0 * c.u**2 / max(unc.u**2, 1e-300)
+            rows.append([m.spec.name, c.source, _in_unit(c.u, unit), f"{share:.0f} %", c.method])
+        rows.append(
+            [
+                m.spec.name,
+                "combined u; expanded U (k = 2)",
+                _in_unit(unc.u, unit),
+                "100 %",
+                f"U = {_in_unit(unc.U, unit)}",
+            ]
+        )
+    missing = sorted({s for m in measurements for s in m.uncertainty.not_included})
+    note = (
+        '<p class="note">Not included: ' + html.escape("; ".join(missing)) + "</p>"
+        if missing
+        else ""
+    )
+    return (
+        rep.figure(budget_figure(measurements), "Where each measurement's uncertainty comes from")
+        + rep.table(["Measurement", "Source", "u", "Share", "How"], rows)
+        + note
     )
 
 

@@ -90,7 +90,7 @@ def fit_sphere(
 def fit_cylinder(
     points: ArrayLike, threshold_mm: float | None = None, *, seed: SeedLike = 0,
     max_iterations: int = 1000, radius_range_mm: tuple[float, float] | None = None,
-    axis_hint: ArrayLike | None = None,
+    axis_hint: ArrayLike | None = None, start: CylinderFit | None = None,
 ) -> CylinderFit:  # fmt: skip
     """Fit a cylinder by orthogonal (radial) least squares, optionally after RANSAC.
 
@@ -105,6 +105,9 @@ def fit_cylinder(
         As for :func:`fit_sphere`.
     axis_hint : array_like, shape (3,), optional
         Approximate axis direction (e.g. the nominal), tried besides the direction search.
+    start : CylinderFit, optional
+        An earlier fit of nearly the same points: the least squares start from it (and from
+        ``axis_hint``, when given) instead of a search for the axis.
 
     Returns
     -------
@@ -114,7 +117,9 @@ def fit_cylinder(
     """
     pts = check_points(points, min_count=0)
     model = CylinderModel(radius_range_mm, axis_hint)
-    return robust_fit(model, pts, threshold_mm, seed=seed, max_iterations=max_iterations)
+    return robust_fit(
+        model, pts, threshold_mm, seed=seed, max_iterations=max_iterations, start=start
+    )
 
 
 def fit_circle(

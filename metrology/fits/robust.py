@@ -312,6 +312,7 @@ def robust_fit(
     *,
     seed: SeedLike = 0,
     max_iterations: int = 1000,
+    start: F | None = None,
 ) -> F:
     """Fit ``model`` to ``points`` by least squares, after RANSAC when ``threshold_mm`` is
     given (see the module's description).
@@ -329,6 +330,9 @@ def robust_fit(
         Seeds RANSAC and the subsamples (a fit is repeatable).
     max_iterations : int
         Most RANSAC hypotheses.
+    start : Fit, optional
+        A fit of nearly the same points (without RANSAC) to start the least squares from,
+        instead of the closed-form or searched start: refitting slightly moved points.
 
     Returns
     -------
@@ -344,6 +348,8 @@ def robust_fit(
         return model.failure(reason)
     rng = rng_from(seed)
     mask, hint = np.ones(n, dtype=bool), None
+    if start is not None and start and hasattr(model, "from_fit"):
+        hint = model.from_fit(start)[0]
     if threshold_mm is not None:
         detected = _detect(model, points, threshold_mm, rng, max_iterations)
         if isinstance(detected, Fit):

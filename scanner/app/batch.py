@@ -50,7 +50,12 @@ from scanner.core.fileio import (
     commit_together,
     write_json_atomic,
 )
-from scanner.core.tolerance import STATUS_ERROR, STATUS_FAIL, ToleranceRow, spreadsheet_safe
+from scanner.core.tolerance import (
+    STATUS_ERROR,
+    ToleranceRow,
+    spreadsheet_safe,
+    verdict_of_statuses,
+)
 from scanner.formats.calibration_file import read_calibration
 from scanner.formats.layout import JobLayout
 from scanner.scanning.pipeline import ScanOptions
@@ -80,7 +85,7 @@ log = logging.getLogger(__name__)
 #: The columns of ``DIR/results.csv`` (interfaces.md §6).
 RESULT_COLUMNS = tuple("session name unit nominal actual deviation lower upper status".split())
 MANIFEST_FORMAT = "scanner-batch/1"
-Verdict = Literal["pass", "fail", "error", "absent"]
+Verdict = Literal["pass", "fail", "not proven", "error", "absent"]
 
 
 # --------------------------------------------------------------------------------------------
@@ -232,6 +237,8 @@ class BatchSummary:
     scanner_version: str
     created_utc: str
     per_session: tuple[SessionRecord, ...]
+    not_proven: tuple[str, ...] = ()
+    """Sessions whose measurements passed none failing but some not proven (guarded rule)."""
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
@@ -248,13 +255,8 @@ class BatchRun:
 
 
 def verdict_of(rows: Sequence[ResultRow]) -> Verdict:
-    """``error`` if a measurement could not be made, ``fail`` if one is out of tolerance."""
-    statuses = {r.status for r in rows}
-    if not rows:
-        return "absent"
-    if STATUS_ERROR in statuses:
-        return "error"
-    return "fail" if STATUS_FAIL in statuses else "pass"
+    """``absent`` without rows, else :func:`~scanner.core.tolerance.verdict_of_statuses`."""
+    return verdict_of_statuses({r.status for r in rows}) if rows else "absent"
 
 
 def _one_line(exc: BaseException) -> str:
@@ -637,6 +639,7 @@ def _summary(
         failed=tuple(FailedSession(o.name, o.reason) for o in outcomes if not o.ok),
         passed=sum(o.verdict == "pass" for o in outcomes),
         out_of_tolerance=tuple(o.name for o in outcomes if o.verdict == "fail"),
+        not_proven=tuple(o.name for o in outcomes if o.verdict == "not proven"),
         processed=sum(not o.reused for o in outcomes),
         reused=sum(o.reused for o in outcomes),
         seconds=round(seconds, 3),

@@ -44,6 +44,7 @@ from metrology.inspect.spec import load_inspection_spec
 from metrology.measure import MeasurementReport, measure_cloud
 from metrology.plan import load_plan
 from metrology.report import write_acceptance_report, write_measurement_report
+from metrology.uncertainty import attach_uncertainties, measurement_uncertainties
 from scanner import __version__
 from scanner.core.config import resolve_config
 from scanner.core.fileio import (
@@ -63,6 +64,7 @@ from scanner.formats.meshes import read_mesh
 from scanner.formats.scan_plan import write_scan_plan
 from scanner.formats.session import read_session
 from scanner.scanning.coverage import SensorGeometry
+from scanner.scanning.geometry import scan_geometry_of
 from scanner.scanning.pipeline import ScanOptions, ScanResult, check_scan_inputs, scan_session
 from scanner.scanning.planning import PlanConfig, SweepPlan, place_on_table, plan_sweeps
 from scanner.virtual_cell.cell import CellConfig, load_cell
@@ -562,12 +564,37 @@ def _judge_cloud(
     return result, files
 
 
-def _measure(
-    points: NDArray, plan_path: Path, cloud_provenance: dict[str, Any]
-) -> MeasurementReport:
-    report = measure_cloud(points, load_plan(plan_path), provenance=cloud_provenance)
-    report.plan_path = str(plan_path)
-    return report
+def _measure_with_uncertainty(
+    cloud_path: Path, calibration_path: Path | None
+) -> Callable[[NDArray, Path, dict[str, Any]], MeasurementReport]:
+    """The measurement of a cloud with each value's uncertainty: from the calibration's
+    covariance, the robot's repeatability and the stripe noise where the cloud's stops are
+    known (:func:`scanner.scanning.geometry.scan_geometry_of`), the noise alone otherwise."""
+
+    def judge(
+        points: NDArray, plan_path: Path, cloud_provenance: dict[str, Any]
+    ) -> MeasurementReport:
+        report = measure_cloud(points, load_plan(plan_path), provenance=cloud_provenance)
+        report.plan_path = str(plan_path)
+        geometry, why = scan_geometry_of(cloud_path, calibration_path)
+        if geometry is not None and len(geometry.frame_index) != len(points):
+            geometry, why = None, "the cloud's stops do not match its points"
+        if geometry is None:
+            log.warning("uncertainty without the calibration and robot shares: %s", why)
+        t0 = time.perf_counter()
+        try:
+            uncertainties = measurement_uncertainties(
+                report, geometry, not_included=() if geometry is not None else (why,)
+            )
+        except (ValueError, np.linalg.LinAlgError) as exc:
+            # the measurement stands without it (and a guarded rule cannot prove conformity)
+            log.warning("no uncertainty evaluated: %s", exc)
+            uncertainties = [None] * len(report.measurements)
+        report = attach_uncertainties(report, uncertainties)
+        report.seconds += time.perf_counter() - t0
+        return report
+
+    return judge
 
 
 def _accept(points: NDArray, spec_path: Path, cloud_provenance: dict[str, Any]) -> AcceptanceResult:
@@ -591,8 +618,9 @@ def measure(
 
     ``plan`` is a TOML path or the name of a shipped plan (``configs/plans``).
     """
+    judge = _measure_with_uncertainty(Path(cloud_path), calibration_path)
     report, files = _judge_cloud(
-        "measure", cloud_path, plan, out, calibration_path, _measure, write_measurement_report
+        "measure", cloud_path, plan, out, calibration_path, judge, write_measurement_report
     )
     return Judged(report, files)
 

@@ -7,14 +7,18 @@ gate) uses these types; the HTML reports only draw them.
 from __future__ import annotations
 
 import math
+from collections.abc import Collection
 from dataclasses import dataclass
 from typing import Any, Literal
 
 __all__ = [
+    "DECISION_RULES",
     "STATUS_ERROR",
     "STATUS_FAIL",
     "STATUS_NA",
+    "STATUS_NOT_PROVEN",
     "STATUS_PASS",
+    "DecisionRule",
     "RowCounts",
     "Status",
     "ToleranceRow",
@@ -22,15 +26,28 @@ __all__ = [
     "format_value",
     "spreadsheet_safe",
     "status_of",
+    "verdict_of_statuses",
 ]
 
-Status = Literal["pass", "fail", "n/a", "error"]
+Status = Literal["pass", "fail", "not proven", "n/a", "error"]
 STATUS_PASS: Status = "pass"
 STATUS_FAIL: Status = "fail"
 STATUS_NA: Status = "n/a"
 """No tolerance given: reported, not judged."""
 STATUS_ERROR: Status = "error"
 """The value could not be measured (a failed fit): counts as failed."""
+STATUS_NOT_PROVEN: Status = "not proven"
+"""Guarded acceptance: inside the tolerance, but nearer a limit than its uncertainty U (or
+without a U), so conformity is not proven (ISO 14253-1); neither passed nor failed."""
+
+DecisionRule = Literal["simple", "guarded"]
+"""How a measured value is judged against its tolerance (ISO 14253-1, ILAC-G8):
+
+- ``simple``: pass inside the tolerance, fail outside; U is reported, not used;
+- ``guarded``: pass only inside the tolerance shrunk by U on each bounded side (conformity
+  proven), fail outside the tolerance, ``not proven`` between.
+"""
+DECISION_RULES: tuple[DecisionRule, ...] = ("simple", "guarded")
 
 
 def format_value(value: float | None, decimals: int = 3, signed: bool = False) -> str:
@@ -74,6 +91,18 @@ def status_of(deviation: float | None, lower: float | None, upper: float | None)
     return STATUS_PASS if ok else STATUS_FAIL
 
 
+def verdict_of_statuses(
+    statuses: Collection[str],
+) -> Literal["pass", "fail", "not proven", "error"]:
+    """``error`` if a value could not be measured, else ``fail`` if one is out of tolerance,
+    else ``not proven`` if one's conformity is not proven, else ``pass``."""
+    if STATUS_ERROR in statuses:
+        return "error"
+    if STATUS_FAIL in statuses:
+        return "fail"
+    return "not proven" if STATUS_NOT_PROVEN in statuses else "pass"
+
+
 @dataclass(frozen=True)
 class ToleranceRow:
     """One line of the Nominal / Actual / Deviation / Tolerance / Status table.
@@ -94,6 +123,11 @@ class ToleranceRow:
         Overrides the status computed from the deviation (e.g. ``"error"`` with a note).
     note : str
         Short free text shown in the last column (why a fit failed, which features).
+    u, U : float or None
+        Combined standard uncertainty and expanded uncertainty (k = 2) of ``actual``, in
+        ``unit``; None when not evaluated.
+    rule : DecisionRule
+        How the status follows from the deviation, the tolerance and ``U``.
     """
 
     name: str
@@ -104,6 +138,9 @@ class ToleranceRow:
     unit: str = "mm"
     status: Status | None = None
     note: str = ""
+    u: float | None = None
+    U: float | None = None
+    rule: DecisionRule = "simple"
 
     @property
     def deviation(self) -> float | None:
@@ -114,7 +151,17 @@ class ToleranceRow:
 
     @property
     def final_status(self) -> Status:
-        return self.status or status_of(self.deviation, self.lower, self.upper)
+        if self.status:
+            return self.status
+        simple = status_of(self.deviation, self.lower, self.upper)
+        if self.rule == "simple" or simple != STATUS_PASS:
+            return simple
+        dev = float(self.deviation)  # type: ignore[arg-type]
+        if self.U is None or not math.isfinite(self.U):
+            return STATUS_NOT_PROVEN
+        near_lower = self.lower is not None and dev < self.lower + self.U
+        near_upper = self.upper is not None and dev > self.upper - self.U
+        return STATUS_NOT_PROVEN if near_lower or near_upper else STATUS_PASS
 
     def to_json(self) -> dict[str, Any]:
         """The same numbers as the HTML row, for the JSON/CSV twin of a report."""
@@ -128,6 +175,9 @@ class ToleranceRow:
             "upper": self.upper,
             "status": self.final_status,
             "note": self.note,
+            **({} if self.u is None else {"u": self.u}),
+            **({} if self.U is None else {"U": self.U}),
+            "decision_rule": self.rule,
         }
 
 
@@ -155,9 +205,20 @@ class RowCounts:
         return sum(r.final_status == STATUS_NA for r in self.rows)
 
     @property
+    def n_not_proven(self) -> int:
+        return sum(r.final_status == STATUS_NOT_PROVEN for r in self.rows)
+
+    @property
     def passed(self) -> bool:
-        """True when no row failed or could not be evaluated."""
-        return self.n_failed == 0
+        """True when no row failed, could not be evaluated, or was left not proven."""
+        return self.n_failed == 0 and self.n_not_proven == 0
+
+    @property
+    def verdict(self) -> Literal["pass", "fail", "not proven"]:
+        """``fail`` when a row failed; else ``not proven`` when one was; else ``pass``."""
+        if self.n_failed:
+            return "fail"
+        return "not proven" if self.n_not_proven else "pass"
 
 
 def spreadsheet_safe(cell: object) -> object:

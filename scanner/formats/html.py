@@ -36,6 +36,7 @@ from scanner.core.tolerance import (
     STATUS_ERROR,
     STATUS_FAIL,
     STATUS_NA,
+    STATUS_NOT_PROVEN,
     STATUS_PASS,
     ToleranceRow,
     format_tolerance,
@@ -56,6 +57,7 @@ __all__ = [
 
 _CSS = """
 :root { --ok: #1b7f3b; --ok-bg: #e3f4e8; --bad: #b3261e; --bad-bg: #fbe4e2;
+        --warn: #8a5a00; --warn-bg: #fdf0d5;
         --na: #5f6368; --na-bg: #eef0f2; --line: #d0d4d9; --ink: #1f2328; }
 * { box-sizing: border-box; }
 body { font: 14px/1.45 -apple-system, "Segoe UI", Roboto, "DejaVu Sans", Arial, sans-serif;
@@ -70,6 +72,7 @@ h2 { font-size: 17px; margin: 28px 0 8px; border-bottom: 1px solid var(--line);
 .summary.pass { background: var(--ok-bg); color: var(--ok); border-color: var(--ok); }
 .summary.fail { background: var(--bad-bg); color: var(--bad); border-color: var(--bad); }
 .summary.na { background: var(--na-bg); color: var(--na); }
+.summary.notproven { background: var(--warn-bg); color: var(--warn); border-color: var(--warn); }
 .summary .detail { font-weight: 400; color: var(--ink); font-size: 13.5px; }
 table { border-collapse: collapse; margin: 6px 0 10px; font-size: 13.5px; }
 th, td { border: 1px solid var(--line); padding: 4px 10px; vertical-align: top; }
@@ -82,6 +85,7 @@ tr.fail td.status, tr.error td.status { background: var(--bad-bg); color: var(--
                                          font-weight: 700; }
 tr.fail td.dev, tr.error td.dev { color: var(--bad); font-weight: 600; }
 tr.na td.status { background: var(--na-bg); color: var(--na); }
+tr.notproven td.status { background: var(--warn-bg); color: var(--warn); font-weight: 700; }
 td.status { text-align: center; text-transform: uppercase; letter-spacing: .04em;
             white-space: nowrap; }
 td.note { color: var(--na); font-size: 12.5px; }
@@ -112,6 +116,7 @@ def summary_line(rows_or_counts: Iterable[ToleranceRow] | tuple[int, int], detai
     detail : str
         Plain text appended after the counts (e.g. the cloud's file name).
     """
+    n_unproven = 0
     if (
         isinstance(rows_or_counts, tuple)
         and len(rows_or_counts) == 2
@@ -122,33 +127,46 @@ def summary_line(rows_or_counts: Iterable[ToleranceRow] | tuple[int, int], detai
         statuses = [r.final_status for r in rows_or_counts]  # type: ignore[union-attr]
         n_pass = sum(s == STATUS_PASS for s in statuses)
         n_fail = sum(s in (STATUS_FAIL, STATUS_ERROR) for s in statuses)
+        n_unproven = sum(s == STATUS_NOT_PROVEN for s in statuses)
     if n_fail:
         cls, word = "fail", "FAIL"
+    elif n_unproven:
+        cls, word = "notproven", "CONFORMITY NOT PROVEN"
     elif n_pass:
         cls, word = "pass", "PASS"
     else:
         cls, word = "na", "NOT JUDGED"
     extra = f' <span class="detail">— {_esc(detail)}</span>' if detail else ""
-    return f'<div class="summary {cls}">{word} — {n_pass} passed, {n_fail} failed{extra}</div>\n'
+    unproven = f", {n_unproven} not proven" if n_unproven else ""
+    return (
+        f'<div class="summary {cls}">{word} — {n_pass} passed, {n_fail} failed{unproven}'
+        f"{extra}</div>\n"
+    )
 
 
 def tolerance_table(rows: Sequence[ToleranceRow], decimals: int = 3) -> str:
     """The colour-coded Nominal / Actual / Deviation / Tolerance / Status table."""
+    with_u = any(r.U is not None for r in rows)
+    u_head = "<th>U (k=2)</th>" if with_u else ""
     out = [
         '<table class="tol">\n<thead><tr><th>Characteristic</th><th>Unit</th><th>Nominal</th>'
-        "<th>Actual</th><th>Deviation</th><th>Tolerance</th><th>Status</th><th>Note</th>"
-        "</tr></thead>\n<tbody>\n"
+        f"<th>Actual</th>{u_head}<th>Deviation</th><th>Tolerance</th><th>Status</th>"
+        "<th>Note</th></tr></thead>\n<tbody>\n"
     ]
     for r in rows:
         st = r.final_status
-        cls = "na" if st == STATUS_NA else st
+        cls = {STATUS_NA: "na", STATUS_NOT_PROVEN: "notproven"}.get(st, st)
+        u_cell = f'<td class="num">±{format_value(r.U, decimals)}</td>' if with_u else ""
+        if with_u and r.U is None:
+            u_cell = '<td class="num">-</td>'
+        rule = " (guarded)" if r.rule == "guarded" else ""
         out.append(
             f'<tr class="{cls}"><td>{_esc(r.name)}</td><td>{_esc(r.unit)}</td>'
             f'<td class="num">{format_value(r.nominal, decimals)}</td>'
-            f'<td class="num">{format_value(r.actual, decimals)}</td>'
+            f'<td class="num">{format_value(r.actual, decimals)}</td>{u_cell}'
             f'<td class="num dev">{format_value(r.deviation, decimals, signed=True)}</td>'
             f'<td class="num">{_esc(format_tolerance(r.lower, r.upper, decimals))}</td>'
-            f'<td class="status">{_esc(st)}</td><td class="note">{_esc(r.note)}</td></tr>\n'
+            f'<td class="status">{_esc(st + rule)}</td><td class="note">{_esc(r.note)}</td></tr>\n'
         )
     out.append("</tbody></table>\n")
     return "".join(out)

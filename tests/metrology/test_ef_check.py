@@ -4,11 +4,14 @@ import math
 import numpy as np
 import pytest
 
-from metrology.ef_check import run_ef_check
+from metrology.ef_check import EFMeasurement, ef_uncertainties, run_ef_check
 from scanner.app.cli import main
+from scanner.core.camera import CameraModel, intersect_rays_with_plane
+from scanner.formats.calibration_covariance import PARAMETERS, CalibrationCovariance
 from scanner.formats.calibration_file import read_calibration
 from scanner.formats.session import read_session
 from scanner.virtual_cell.truth import read_truth
+from tests.scanner.scanning.test_triangulate import _calibration
 
 pytestmark = pytest.mark.slow
 
@@ -86,3 +89,52 @@ def test_a_sweep_session_is_refused(tmp_path, modern_check, capsys):
     assert code == 2
     assert "session folder not found" in capsys.readouterr().err
     assert not (tmp_path / "x.json").exists()
+
+
+def _ef_pixels(cal, rng, n=6):
+    """E and F 120 mm apart on the light plane in view of the camera: their pixels."""
+    cam = CameraModel(cal.width, cal.height, cal.K, cal.dist)
+    n_, d = cal.light_plane.normal, cal.light_plane.d
+    out = []
+    for _ in range(n):
+        c = np.array([rng.uniform(-5, 5), rng.uniform(-5, 5), 300.0])
+        c -= (n_ @ c + d) * n_  # onto the plane
+        along = np.cross(n_, [1.0, 0.0, 0.0])
+        along /= np.linalg.norm(along)
+        e, f = c - 60 * along, c + 60 * along
+        out.append(cam.project(np.array([e, f])))
+    return out
+
+
+def test_ef_uncertainty_carries_the_calibration_and_the_scatter_over_images():
+    rng = np.random.default_rng(0)
+    cal = _calibration(dist=(-0.1, 0.05, 0.0, 0.0, 0.0))
+    lengths = 120.0 + rng.normal(0, 0.01, 6)
+    ms = [
+        EFMeasurement(i, True, length_mm=L, error_mm=L - 120.0, e_px=ef[0], f_px=ef[1])
+        for i, (L, ef) in enumerate(zip(lengths, _ef_pixels(cal, rng)))
+    ]
+    ef_uncertainties(ms, cal)
+    u = ms[0].uncertainty
+    assert [c.source for c in u.budget] == ["image (stripe, ring, passage beside O)"]
+    assert u.budget[0].u == pytest.approx(np.std(lengths, ddof=1))
+    assert any("calibration" in s for s in u.not_included)
+    # with a covariance: the calibration share is the scatter of |EF| over calibrations drawn
+    sd = dict.fromkeys(PARAMETERS, 0.0)
+    sd.update(fx=1.0, fy=1.0, cx=0.5, cy=0.5, plane_a=3e-4, plane_b=3e-4, plane_d=0.05)
+    sd.update(cam_rx=1e-3, cam_tx=0.5)  # the hand-eye does not change a length
+    cal.covariance = CalibrationCovariance(np.diag([sd[p] ** 2 for p in PARAMETERS]))
+    ef_uncertainties(ms, cal)
+    share = ms[0].uncertainty.budget[0]
+    assert share.source == "calibration"
+    e_px, f_px = ms[0].e_px, ms[0].f_px
+    draws = []
+    for delta in cal.covariance.draws(3000, np.random.default_rng(1)):
+        c = cal.corrected(delta)
+        cam = CameraModel(c.width, c.height, c.K, c.dist)
+        p = intersect_rays_with_plane(
+            cam.rays(np.array([e_px, f_px])), c.light_plane.normal, c.light_plane.d
+        )
+        draws.append(np.linalg.norm(p[0] - p[1]))
+    assert share.u == pytest.approx(np.std(draws), rel=0.1)
+    assert ms[0].to_json()["U_mm"] == pytest.approx(2 * ms[0].uncertainty.u)

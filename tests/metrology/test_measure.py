@@ -223,7 +223,15 @@ def test_measure_command_writes_json_csv_html(tmp_path: Path, capsys, monkeypatc
     csv_lines = out.with_suffix(".csv").read_text().splitlines()
     assert csv_lines[0].startswith("name,unit,nominal,actual,deviation")
     assert len(csv_lines) == 12
-    assert out.with_suffix(".html").read_text().startswith("<!DOCTYPE html>")
+    page = out.with_suffix(".html").read_text()
+    assert page.startswith("<!DOCTYPE html>") and "Uncertainty budgets" in page
+    # Issue #19: every value with u and U; a cloud without its stops gets the noise share
+    # only, and the report says what is missing.
+    m = data["measurements"][1]
+    assert m["U"] == pytest.approx(2 * m["u"]) and 0 < m["u"] < 0.05
+    assert [c["source"] for c in m["uncertainty"]["budget"]] == ["stripe noise and fit"]
+    assert any(".npy" in s for s in m["uncertainty"]["not_included"])
+    assert csv_lines[0].endswith(",u,U,decision_rule")
 
 
 def test_measure_command_strict_exit_and_bad_input(tmp_path: Path, capsys, monkeypatch):

@@ -338,6 +338,8 @@ def _print_run(run_: BatchRun) -> None:
         print(f"  FAILED {f.session}: {f.reason}", file=sys.stderr)
     if s.out_of_tolerance:
         print(f"  out of tolerance: {', '.join(s.out_of_tolerance)}")
+    if s.not_proven:
+        print(f"  conformity not proven: {', '.join(s.not_proven)}")
     print(f"wrote {run_.results_path}, {run_.summary_path.name}")
 
 

@@ -115,6 +115,8 @@ class JobOutcome:
     artefacts: tuple[Path, ...] = ()
     error: ErrorCode = ErrorCode.NONE
     message: str = ""
+    not_proven: bool = False
+    """Nothing failed, but a measurement's conformity is not proven (guarded acceptance)."""
 
 
 class JobRunner(Protocol):
@@ -388,6 +390,8 @@ class PipelineJobs:
         return replace(
             outcomes[-1],
             passed=all(o.passed for o in outcomes),
+            not_proven=any(o.not_proven for o in outcomes)
+            and not any(not o.passed and not o.not_proven for o in outcomes),
             artefacts=(job.cloud, *(a for o in outcomes for a in o.artefacts)),
             message="; ".join(o.message for o in outcomes if o.message),
         )
@@ -401,6 +405,7 @@ class PipelineJobs:
         figures += [None] * (3 - len(figures))
         return JobOutcome(
             passed=bool(report.passed),
+            not_proven=report.verdict == "not proven",
             results_um=(figures[0], figures[1], figures[2]),
             report_path=run.files.html_path,
             artefacts=(run.files.json_path,),

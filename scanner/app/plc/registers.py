@@ -80,6 +80,10 @@ class Status(enum.IntFlag):
     PASS = 1 << 4
     ERROR = 1 << 5
     CALIBRATED = 1 << 6
+    NOT_PROVEN = 1 << 7
+    """A scan job's measurements under guarded acceptance: none failed, but at least one lies
+    within its uncertainty U of a limit (conformity not proven, ISO 14253-1); DONE and
+    RESULT_VALID are set, PASS is not."""
 
 
 class State(enum.IntEnum):
@@ -182,7 +186,11 @@ _PLC_ROWS = (
     ("4-9", "reserved parameters (accepted, stored)"),
 )
 _SCANNER_ROWS = (
-    ("100", "status bits: 0 READY, 1 BUSY, 2 DONE, 3 RESULT_VALID, 4 PASS, 5 ERROR, 6 CALIBRATED"),
+    (
+        "100",
+        "status bits: 0 READY, 1 BUSY, 2 DONE, 3 RESULT_VALID, 4 PASS, 5 ERROR, 6 CALIBRATED, "
+        "7 NOT_PROVEN",
+    ),
     ("101", "sequence number of the command last accepted"),
     ("102", "error code, 0 when none (below)"),
     ("103", "state: 0 idle, 1 running, 2 done, 3 error"),

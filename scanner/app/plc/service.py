@@ -214,6 +214,7 @@ class PlcService:
         passed: bool,
         error: ErrorCode,
         result_valid: bool = True,
+        not_proven: bool = False,
     ) -> None:
         """Results first, then status; the job id is the job's own."""
         self._set_results(results_um)
@@ -222,6 +223,8 @@ class PlcService:
             bits = Status.DONE
             if result_valid:
                 bits |= Status.RESULT_VALID | (Status.PASS if passed else Status(0))
+                if not_proven and not passed:
+                    bits |= Status.NOT_PROVEN
             state = State.DONE
         else:
             bits, state = Status.ERROR, State.ERROR
@@ -367,7 +370,8 @@ class PlcService:
             error = ErrorCode.INTERNAL
         if self.job is job:
             self.job = None
-        self._publish_end(job.ctx.job_id, results, passed, error)
+        not_proven = outcome is not None and outcome.not_proven and error == ErrorCode.NONE
+        self._publish_end(job.ctx.job_id, results, passed, error, not_proven=not_proven)
         log.info(
             "job %d %s (error %d%s)",
             job.ctx.job_id,

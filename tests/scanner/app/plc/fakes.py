@@ -49,6 +49,8 @@ class FakeJobs:
             raise RuntimeError("fake: a bug")
         if p == 997:
             return JobOutcome(passed=False, results_um=RESULTS_UM)
+        if p == 995:  # guarded acceptance: nothing failed, conformity not proven
+            return JobOutcome(passed=False, not_proven=True, results_um=RESULTS_UM)
         if p == 996:
             time.sleep(30.0)
         else:

@@ -167,7 +167,7 @@ def _fake_pipeline(monkeypatch: pytest.MonkeyPatch, quality: dict, rows: list) -
     def scan(sessions: list[Path], calibration: Path, out: Path, **_: object) -> None:
         Path(out).write_text("ply", "utf-8")
 
-    report = SimpleNamespace(rows=rows, passed=True, summary=lambda: "PASS")
+    report = SimpleNamespace(rows=rows, passed=True, verdict="pass", summary=lambda: "PASS")
 
     def measure(cloud: Path, plan: Path, out: Path, **_: object) -> SimpleNamespace:
         for path in (out, out.with_suffix(".html")):

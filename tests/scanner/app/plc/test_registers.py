@@ -42,7 +42,9 @@ def test_unknown_or_saturated_figures_read_invalid():
 
 
 def test_status_bits_match_the_contract():
-    assert [int(b) for b in Status] == [1, 2, 4, 8, 16, 32, 64]
+    # bits 0-6 as the contract names them; bit 7 (NOT_PROVEN) is this project's extension
+    assert [int(b) for b in Status] == [1, 2, 4, 8, 16, 32, 64, 128]
+    assert Status.NOT_PROVEN.name == "NOT_PROVEN"
 
 
 def test_print_map_lists_every_register_and_error_code():

@@ -190,6 +190,7 @@ def test_write_to_scanner_registers_is_refused(service: Running, plc: Plc):
     ("parameter", "bits", "error"),
     [
         (997, Status.DONE | Status.RESULT_VALID, ErrorCode.NONE),  # out of tolerance
+        (995, Status.DONE | Status.RESULT_VALID | Status.NOT_PROVEN, ErrorCode.NONE),
         (999, Status.ERROR, ErrorCode.BAD_INPUT),
         (998, Status.ERROR, ErrorCode.INTERNAL),
     ],

@@ -1,0 +1,370 @@
+"""The combined standard uncertainty of each measured value, with its budget (GUM).
+
+A measured value (a diameter, a distance, a flatness) comes from features fitted to cloud
+points; the points come from stripe pixels, a calibration and robot stops. Each source of
+error is carried through the same fits that made the value, with the same points:
+
+- **calibration**: the calibration file's covariance (``covariance`` key), linearised along
+  its principal directions: each one-sigma direction re-triangulates the points from their
+  own pixels and stops, the features are fitted again, and the value's changes add in
+  quadrature (exact for a value linear in the calibration over its sigma, which the small
+  corrections are);
+- **robot repeatability**: every stop missed by an independent random motion of the flange
+  (the calibration's estimate of the robot's repeatability), by Monte Carlo;
+- **stripe noise and the fit**: a wild bootstrap of the fits' residuals that flips the sign of
+  all residuals of one stop together, so that the noise's correlation along a profile (one
+  stop's stripe shares its exposure, speckle and pose) is kept instead of assumed away.
+
+``u`` is the root sum of squares; ``U = k u`` with ``k = 2``. What could not be included is
+named (for example a cloud without its stops: no calibration or robot share).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from metrology.budget import COVERAGE_FACTOR, Contribution, Uncertainty
+from metrology.fits import CylinderFit, Fit, PlaneFit, SphereFit
+from metrology.measure import MeasurementReport, evaluate_measurement, fit_feature
+from scanner.core.tolerance import STATUS_NOT_PROVEN, STATUS_PASS
+from scanner.scanning.geometry import ScanGeometry
+
+__all__ = ["UncertaintyConfig", "attach_uncertainties", "measurement_uncertainties"]
+
+
+@dataclass(frozen=True)
+class UncertaintyConfig:
+    """How the budget is evaluated.
+
+    Attributes
+    ----------
+    draws : int
+        Monte Carlo draws of the robot's misses and bootstrap draws of the noise.
+    seed : int
+        Seed of both (a report is reproducible).
+    systematic_points : int
+        The calibration and robot shares move whole stops smoothly: the features are fitted
+        again to at most this many of their points, drawn at random (the noise share takes
+        them all).
+    """
+
+    draws: int = 16
+    seed: int = 0
+    systematic_points: int = 1500
+
+    def __post_init__(self) -> None:
+        if self.draws < 4:
+            raise ValueError(f"uncertainty draws: expected at least 4, got {self.draws}")
+
+
+@dataclass
+class _Features:
+    """The fitted features a plan's measurements use: their specs, inlier indices, fits."""
+
+    specs: dict[str, Any]
+    indices: dict[str, NDArray]
+    fits: dict[str, Fit] = field(default_factory=dict)
+
+
+def _residual_normals(fit: Fit, points: NDArray) -> tuple[NDArray, NDArray] | None:
+    """``(residuals (M,), unit directions (M, 3))``: ``points - r n`` lie on the fitted surface."""
+    if isinstance(fit, SphereFit):
+        q = points - fit.center_mm
+        dist = np.linalg.norm(q, axis=1)
+        return dist - fit.radius_mm, q / dist[:, None]
+    if isinstance(fit, PlaneFit):
+        return points @ fit.normal + fit.d_mm, np.broadcast_to(fit.normal, points.shape)
+    if isinstance(fit, CylinderFit):
+        q = points - fit.point_mm
+        radial = q - np.outer(q @ fit.axis, fit.axis)
+        dist = np.linalg.norm(radial, axis=1)
+        return dist - fit.radius_mm, radial / dist[:, None]
+    return None
+
+
+def noise_range_p95(
+    residuals: NDArray,
+    points: NDArray,
+    rng: np.random.Generator,
+    scale_mm: tuple[float, float] = (1.0, 3.0),
+    draws: int = 64,
+    max_points: int = 8000,
+) -> float | None:
+    """The 95th percentile of the range of ``len(residuals)`` samples of the noise alone.
+
+    The noise is told from the form by its scale: between points ``scale_mm`` apart (beyond
+    the stripe noise's own correlation along a profile, well under a form's wavelength) a
+    smooth form hardly changes, so ``(r[j] - r[i]) / sqrt(2)`` samples the noise only,
+    profile-to-profile offsets included. The ranges of draws from that sample give the
+    distribution of the range a perfect feature would show. Form on scales under
+    ``scale_mm[1]`` is taken for noise.
+
+    Returns None when fewer than 30 such pairs are found.
+    """
+    n = len(residuals)
+    sub = rng.choice(n, min(n, max_points), replace=False)
+    pairs = cKDTree(points[sub]).query_pairs(scale_mm[1], output_type="ndarray")
+    if len(pairs):
+        gap = np.linalg.norm(points[sub][pairs[:, 0]] - points[sub][pairs[:, 1]], axis=1)
+        pairs = pairs[gap >= scale_mm[0]]
+    if len(pairs) < 30:
+        return None
+    r = residuals[sub]
+    noise = (r[pairs[:, 0]] - r[pairs[:, 1]]) / math.sqrt(2.0)
+    draws = max(16, min(draws, int(4e6 // max(n, 1))))  # 16 draws, more where they are cheap
+    ranges = np.empty(draws)
+    for k in range(draws):
+        sample = rng.choice(noise, size=n, replace=True)
+        ranges[k] = sample.max() - sample.min()
+    return float(np.quantile(ranges, 0.95))
+
+
+def _values(report: MeasurementReport, features: _Features, points: dict[str, NDArray]) -> NDArray:
+    """Every measurement's value with its features fitted again to ``points`` (by name).
+
+    A minimum-zone form is not solved again: its change is taken as the change of the
+    least-squares range (the linear programme would cost more than all the rest).
+    """
+    fits = dict(features.fits)
+    for name, pts in points.items():
+        fit = fit_feature(features.specs[name], pts, None, start=features.fits[name])
+        ref = features.fits[name]
+        if fit and ref.min_zone_mm is not None:
+            fit = dataclasses.replace(
+                fit, min_zone_mm=ref.min_zone_mm + fit.range_mm - ref.range_mm
+            )
+        fits[name] = fit
+    out = []
+    for m in report.measurements:
+        if any(name not in fits for name in m.spec.features):
+            out.append(math.nan)
+            continue
+        row = evaluate_measurement(m.spec, fits)
+        out.append(math.nan if row.actual is None else float(row.actual))
+    return np.asarray(out, dtype=np.float64)
+
+
+def measurement_uncertainties(
+    report: MeasurementReport,
+    geometry: ScanGeometry | None,
+    config: UncertaintyConfig | None = None,
+    not_included: tuple[str, ...] = (),
+) -> list[Uncertainty | None]:
+    """The uncertainty of each of ``report``'s measurements (None where it has no value).
+
+    Parameters
+    ----------
+    report : MeasurementReport
+        Its features' fits and inliers are the starting point; the cloud is its points.
+    geometry : ScanGeometry or None
+        Each point's stop and the calibration (with its ``covariance``); ``None`` when the
+        cloud's origin is not known: only the noise share, with independent points.
+    config : UncertaintyConfig, optional
+    not_included : tuple of str
+        Sources the caller knows are missing (named in every result).
+
+    Returns
+    -------
+    list of Uncertainty or None, one per measurement
+    """
+    config = config or UncertaintyConfig()
+    rng = np.random.default_rng(config.seed)
+    used = {name for m in report.measurements for name in m.spec.features}
+    ok = [f for f in report.features if f.spec.name in used and f.ok]
+    feats = _Features(
+        specs={f.spec.name: dataclasses.replace(f.spec, seed=0, min_zone=False) for f in ok},
+        indices={f.spec.name: f.inlier_indices for f in ok},
+        fits={f.spec.name: f.fit for f in report.features},
+    )
+    cloud = report.points_base
+    base_points = {name: cloud[idx] for name, idx in feats.indices.items()}
+    reference = _values(report, feats, base_points)
+    budget: list[list[Contribution]] = [[] for _ in report.measurements]
+    missing = list(not_included)
+    # what is missing for one measurement only (refits that failed)
+    own_missing: list[list[str]] = [[] for _ in report.measurements]
+
+    def add(source: str, method: str, deltas: NDArray) -> None:
+        """``deltas`` (draws, measurements) of values from the reference, NaN where a refit
+        failed: the source counts from the draws that worked when they are most of them, and
+        is named as missing otherwise."""
+        for i, row in enumerate(budget):
+            d = deltas[:, i]
+            ok = np.isfinite(d)
+            if ok.all():
+                row.append(Contribution(source, float(np.sqrt(np.mean(d**2))), method))
+            elif ok.sum() >= max(3, 0.75 * len(d)):
+                rms = float(np.sqrt(np.mean(d[ok] ** 2) * len(d) / ok.sum()))
+                row.append(
+                    Contribution(source, rms, f"{method}; {len(d) - ok.sum()} refits failed")
+                )
+            else:
+                own_missing[i].append(f"{source} ({len(d) - ok.sum()} of {len(d)} refits failed)")
+
+    def spread(draw: Callable[[], dict[str, NDArray]]) -> NDArray:
+        """Sample deviations (draws, measurements), scaled so that their RMS is the std."""
+        vals = np.array([_values(report, feats, draw()) for _ in range(config.draws)])
+        return (vals - np.nanmean(vals, axis=0)) * math.sqrt(config.draws / (config.draws - 1))
+
+    # calibration
+    covariance = None if geometry is None else geometry.calibration.covariance
+    sample = {
+        n: idx
+        if len(idx) <= config.systematic_points
+        else np.sort(rng.choice(idx, config.systematic_points, replace=False))
+        for n, idx in feats.indices.items()
+    }
+    if geometry is not None and covariance is not None:
+        pixels = {n: geometry.pixels(cloud, idx) for n, idx in sample.items()}
+
+        def triangulated(delta: NDArray) -> dict[str, NDArray]:
+            cal = geometry.calibration.corrected(delta)
+            return {n: geometry.retriangulated(cal, pixels[n], idx) for n, idx in sample.items()}
+
+        zero = _values(report, feats, triangulated(np.zeros(covariance.matrix.shape[0])))
+        dirs = covariance.principal_directions()
+        deltas = np.array([_values(report, feats, triangulated(s)) - zero for s in dirs])
+        if len(dirs):
+            # sum of squares over the directions: scale the RMS by sqrt(M)
+            add(
+                "calibration",
+                f"linearised over {len(dirs)} principal directions of the calibration's covariance",
+                deltas * math.sqrt(len(dirs)),
+            )
+    if (
+        geometry is not None
+        and covariance is not None
+        and not len(covariance.principal_directions())
+    ):
+        missing.append("calibration (its covariance is zero)")
+    elif geometry is not None and covariance is None:
+        missing.append("calibration (the calibration file has no covariance)")
+    elif geometry is None:
+        missing.append("calibration (the cloud's stops are not known)")
+
+    # Errors of one stop (the robot's miss, the exposure's noise and speckle along the
+    # profile) show in the fits' residuals: a wild bootstrap that flips the sign of all
+    # residuals of a stop together (one sign per stop for every feature) sees them all. The
+    # robot's share of it is shown from the repeatability model, by Monte Carlo.
+    flips: dict[str, tuple[NDArray, NDArray, NDArray]] = {}
+    n_clusters = len(cloud) if geometry is None else len(geometry.base_from_flange)
+    for name, idx in feats.indices.items():
+        rn = _residual_normals(feats.fits[name], base_points[name])
+        if rn is None:
+            missing.append(f"stripe noise of {name} (no residual direction for its kind)")
+            continue
+        cluster = idx if geometry is None else geometry.frame_index[idx]
+        flips[name] = (rn[0][:, None] * rn[1], np.asarray(cluster), base_points[name])
+
+    def noise_draw() -> dict[str, NDArray]:
+        out = dict(base_points)
+        sign = rng.choice([-1.0, 1.0], size=n_clusters)
+        for name, (offset, cluster, pts) in flips.items():
+            out[name] = pts + (sign[cluster] - 1.0)[:, None] * offset
+        return out
+
+    robot_dev = None
+    robot_method = ""
+    if (
+        geometry is not None
+        and covariance is not None
+        and (covariance.robot_rotation_deg > 0 or covariance.robot_translation_mm > 0)
+    ):
+        n_stops = len(geometry.base_from_flange)
+        sr = math.radians(covariance.robot_rotation_deg)
+        st = covariance.robot_translation_mm
+
+        def robot_draw() -> dict[str, NDArray]:
+            rv = rng.normal(0.0, sr, (n_stops, 3))
+            tv = rng.normal(0.0, st, (n_stops, 3))
+            return {n: geometry.pose_moved(cloud, idx, rv, tv) for n, idx in sample.items()}
+
+        robot_dev = spread(robot_draw)
+        robot_method = (
+            f"Monte Carlo, {config.draws} draws of independent misses per stop "
+            f"({covariance.robot_rotation_deg:.4f} deg, {covariance.robot_translation_mm:.4f} mm "
+            "per axis), at most the stop-clustered bootstrap it is part of"
+        )
+    elif geometry is None or covariance is None:
+        missing.append("robot repeatability (not known; points of one stop taken as independent)")
+    if flips:
+        clusters = "stops" if geometry is not None else "points (stops not known)"
+        boot = spread(noise_draw)
+        method = f"wild bootstrap of the residuals, {config.draws} draws, clustered by {clusters}"
+        if robot_dev is None:
+            add("stripe noise and fit", method, boot)
+        else:
+            # the bootstrap already holds the robot's visible share: split, never add
+            total = np.sqrt(np.nanmean(boot**2, axis=0))
+            robot = np.minimum(np.sqrt(np.nanmean(robot_dev**2, axis=0)), total)
+            rest = np.sqrt(np.maximum(total**2 - robot**2, 0.0))
+            add(
+                "robot repeatability", robot_method, np.where(np.isfinite(robot_dev), robot, np.nan)
+            )
+            add(
+                "stripe noise and fit",
+                f"{method}, less the robot's share",
+                np.where(np.isfinite(boot), rest, np.nan),
+            )
+    elif robot_dev is not None:
+        add("robot repeatability", robot_method, robot_dev)
+
+    # a range (flatness, form) holds the noise's own range: a one-sided error no refit shows
+    for i, m in enumerate(report.measurements):
+        if m.spec.type not in ("flatness", "form") or m.spec.features[0] not in flips:
+            continue
+        name = m.spec.features[0]
+        residuals, _ = _residual_normals(feats.fits[name], base_points[name])  # type: ignore[misc]
+        upper = noise_range_p95(residuals, base_points[name], rng)
+        if upper is not None:
+            budget[i].append(
+                Contribution(
+                    "noise in the range",
+                    upper / COVERAGE_FACTOR,
+                    "95th percentile of the range of the noise alone (residual differences "
+                    "of points 1-3 mm apart), as U",
+                )
+            )
+
+    results: list[Uncertainty | None] = []
+    for value, row, own in zip(reference, budget, own_missing):
+        if not math.isfinite(value) or not row:
+            results.append(None)
+            continue
+        u = float(np.sqrt(sum(c.u**2 for c in row)))
+        results.append(Uncertainty(u, tuple(row), not_included=(*missing, *own)))
+    return results
+
+
+def attach_uncertainties(
+    report: MeasurementReport, uncertainties: list[Uncertainty | None]
+) -> MeasurementReport:
+    """``report`` with each measurement's uncertainty in its row (``u``, ``U``) and record;
+    the rows' statuses then follow the plan's decision rule with that ``U``. Under guarded
+    acceptance a ``U`` that misses a source (``not_included``) cannot prove conformity: such
+    a row that would pass is ``not proven``, with the reason in its note."""
+    if len(uncertainties) != len(report.measurements):
+        raise ValueError(
+            f"uncertainties: expected {len(report.measurements)}, got {len(uncertainties)}"
+        )
+    measurements = []
+    for m, u in zip(report.measurements, uncertainties):
+        if u is None:
+            measurements.append(m)
+            continue
+        row = dataclasses.replace(m.row, u=u.u, U=u.U)
+        if row.rule == "guarded" and u.not_included and row.final_status == STATUS_PASS:
+            note = f"U incomplete: {'; '.join(u.not_included)}"
+            row = dataclasses.replace(
+                row, status=STATUS_NOT_PROVEN, note=f"{row.note}; {note}" if row.note else note
+            )
+        measurements.append(dataclasses.replace(m, row=row, uncertainty=u))
+    return dataclasses.replace(report, measurements=measurements)

@@ -1,0 +1,185 @@
+"""Each measured value's uncertainty against what repeated measurements actually scatter by:
+the calibration's share against Monte Carlo over calibrations, the noise's against repeated
+noisy scans, the robot's against a robot that misses its stops."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from metrology.measure import measure_cloud
+from metrology.plan import Plan, load_plan
+from metrology.uncertainty import (
+    UncertaintyConfig,
+    attach_uncertainties,
+    measurement_uncertainties,
+    noise_range_p95,
+)
+from scanner.formats.calibration_covariance import PARAMETERS, CalibrationCovariance
+from scanner.scanning.triangulate import Triangulator
+from tests.metrology._sweep import PLAN, ball_sweep
+
+
+@pytest.fixture(scope="module")
+def plan(tmp_path_factory) -> Plan:
+    path = tmp_path_factory.mktemp("plan") / "ball.toml"
+    path.write_text(PLAN)
+    return load_plan(path)
+
+
+def _covariance(robot_mm: float = 0.0, robot_deg: float = 0.0) -> CalibrationCovariance:
+    sd = dict.fromkeys(PARAMETERS, 0.0)
+    sd.update(fx=0.5, fy=0.5, cx=0.3, cy=0.3, k1=2e-4, plane_a=2e-4, plane_b=2e-4, plane_d=0.02)
+    sd.update(cam_rx=1e-4, cam_ry=1e-4, cam_rz=1e-4, cam_tx=0.02, cam_ty=0.02, cam_tz=0.02)
+    s = np.array([sd[p] for p in PARAMETERS])
+    corr = np.eye(len(PARAMETERS))
+    i, j = PARAMETERS.index("fx"), PARAMETERS.index("plane_d")
+    corr[i, j] = corr[j, i] = 0.6  # a longer focal length and a farther plane go together
+    return CalibrationCovariance(corr * np.outer(s, s), robot_deg, robot_mm, "test")
+
+
+def _values(report) -> np.ndarray:
+    return np.array([m.row.actual for m in report.measurements], dtype=float)
+
+
+def test_the_calibration_share_matches_monte_carlo_over_calibrations(plan):
+    sweep = ball_sweep()
+    sweep.calibration.covariance = _covariance()
+    report = measure_cloud(sweep.points(), plan)
+    u = measurement_uncertainties(report, sweep.geometry(), UncertaintyConfig(draws=8))
+    linear = np.array([next(c.u for c in x.budget if c.source == "calibration") for x in u])
+    rng = np.random.default_rng(0)
+    values = []
+    for delta in sweep.calibration.covariance.draws(150, rng):
+        cal = sweep.calibration.corrected(delta)
+        points = Triangulator(cal, grid_step_px=0).points_base(
+            sweep.pixels, sweep.frame_index, sweep.base_from_flange
+        )
+        values.append(_values(measure_cloud(points, plan)))
+    mc = np.std(values, axis=0, ddof=1)
+    # diameter and height (the flatness of an exact table hardly moves)
+    np.testing.assert_allclose(linear[:2], mc[:2], rtol=0.25)
+    assert np.all(linear[:2] > 1e-4)
+
+
+def test_the_noise_share_matches_the_scatter_of_repeated_scans(plan):
+    sweep = ball_sweep()
+    sweep.calibration.covariance = _covariance()
+    rng = np.random.default_rng(1)
+    # the bootstrap of one scan scatters by about 15 %: average three
+    boot = []
+    for k in range(3):
+        report = measure_cloud(sweep.points(rng, noise_px=0.15), plan)
+        u = measurement_uncertainties(report, sweep.geometry(), UncertaintyConfig(draws=32, seed=k))
+        boot.append([next(c.u for c in x.budget if c.source == "stripe noise and fit") for x in u])
+    repeated = [_values(measure_cloud(sweep.points(rng, noise_px=0.15), plan)) for _ in range(60)]
+    sd = np.std(repeated, axis=0, ddof=1)
+    np.testing.assert_allclose(np.mean(boot, axis=0)[:2], sd[:2], rtol=0.3)
+
+
+def test_the_robot_share_matches_a_robot_that_misses_its_stops(plan):
+    sweep = ball_sweep()
+    sweep.calibration.covariance = _covariance(robot_mm=0.02, robot_deg=0.005)
+    rng = np.random.default_rng(2)
+    # the residuals of a scan by this robot carry its misses: the stop-clustered bootstrap sees
+    # them, and the repeatability model names that share
+    report = measure_cloud(sweep.points(rng, robot_mm=0.02, robot_deg=0.005), plan)
+    u = measurement_uncertainties(report, sweep.geometry(), UncertaintyConfig(draws=48))
+    robot = np.array([next(c.u for c in x.budget if c.source == "robot repeatability") for x in u])
+    per_stop = np.array(
+        [np.sqrt(sum(c.u**2 for c in x.budget if c.source != "calibration")) for x in u]
+    )
+    repeated = [
+        _values(measure_cloud(sweep.points(rng, robot_mm=0.02, robot_deg=0.005), plan))
+        for _ in range(40)
+    ]
+    sd = np.std(repeated, axis=0, ddof=1)
+    np.testing.assert_allclose(robot[:2], sd[:2], rtol=0.4)
+    np.testing.assert_allclose(per_stop[:2], sd[:2], rtol=0.4)  # not counted twice
+
+
+def test_a_flatness_is_given_the_range_its_noise_alone_would_show(plan):
+    sweep = ball_sweep()
+    sweep.calibration.covariance = _covariance()
+    rng = np.random.default_rng(3)
+    flatness = []
+    for _ in range(20):
+        report = measure_cloud(sweep.points(rng, noise_px=0.15), plan)
+        flatness.append(report.measurements[2].row.actual)
+    u = measurement_uncertainties(report, sweep.geometry())
+    budget = {c.source: c.u for c in u[2].budget}
+    # the table is exact: every flatness measured is noise, and U covers most of them
+    assert "noise in the range" in budget
+    assert np.mean(np.array(flatness) <= u[2].U) >= 0.8
+    assert u[2].U <= 2.0 * np.max(flatness)
+
+
+def test_noise_range_needs_pairs_at_the_noise_scale():
+    rng = np.random.default_rng(4)
+    points = np.column_stack([rng.uniform(0, 50, 4000), rng.uniform(0, 50, 4000), np.zeros(4000)])
+    r = rng.normal(0, 0.01, 4000)
+    p95 = noise_range_p95(r, points, rng)
+    true = [np.ptp(rng.normal(0, 0.01, 4000)) for _ in range(200)]
+    assert p95 == pytest.approx(np.quantile(true, 0.95), rel=0.15)
+    assert noise_range_p95(r[:10], points[:10] * 100, rng) is None
+
+
+def test_without_the_stops_only_the_noise_share_is_given_and_the_rest_is_named(plan):
+    sweep = ball_sweep()
+    report = measure_cloud(sweep.points(np.random.default_rng(5), noise_px=0.1), plan)
+    u = measurement_uncertainties(report, None, not_included=("no stops",))
+    assert [c.source for c in u[0].budget] == ["stripe noise and fit"]
+    assert "no stops" in u[0].not_included
+    assert any("calibration" in s for s in u[0].not_included)
+
+
+def test_attached_uncertainties_reach_the_rows_and_the_json(plan):
+    sweep = ball_sweep()
+    sweep.calibration.covariance = _covariance()
+    report = measure_cloud(sweep.points(np.random.default_rng(6), noise_px=0.1), plan)
+    u = measurement_uncertainties(report, sweep.geometry(), UncertaintyConfig(draws=8))
+    out = attach_uncertainties(report, u).to_json()
+    m = out["measurements"][0]
+    assert m["U"] == pytest.approx(2 * m["u"]) and m["u"] == pytest.approx(u[0].u)
+    assert {c["source"] for c in m["uncertainty"]["budget"]} >= {
+        "calibration",
+        "stripe noise and fit",
+    }
+    with pytest.raises(ValueError, match="expected 3, got 1"):
+        attach_uncertainties(report, u[:1])
+
+
+def test_guarded_acceptance_leaves_a_value_near_its_limit_not_proven(plan):
+    sweep = ball_sweep()
+    sweep.calibration.covariance = _covariance(robot_mm=0.01, robot_deg=0.002)
+    guarded = dataclasses.replace(plan, decision_rule="guarded")
+    report = measure_cloud(sweep.points(np.random.default_rng(7), noise_px=0.1), guarded)
+    u = measurement_uncertainties(report, sweep.geometry(), UncertaintyConfig(draws=8))
+    report = attach_uncertainties(report, u)
+    diameter = report.measurements[0].row
+    assert diameter.rule == "guarded" and diameter.final_status == "pass"
+    # the same value with a tolerance only just wider than its deviation: not proven
+    tight = abs(diameter.deviation) + 0.5 * diameter.U
+    near = dataclasses.replace(diameter, lower=-tight, upper=tight)
+    assert near.final_status == "not proven"
+    assert dataclasses.replace(near, rule="simple").final_status == "pass"
+
+
+def test_guarded_acceptance_proves_nothing_with_an_incomplete_budget(plan):
+    sweep = ball_sweep()
+    points = sweep.points(np.random.default_rng(7), noise_px=0.1)
+    simple = measure_cloud(points, plan)
+    guarded = measure_cloud(points, dataclasses.replace(plan, decision_rule="guarded"))
+    u = measurement_uncertainties(guarded, None, UncertaintyConfig(draws=8), ("no stops",))
+    guarded = attach_uncertainties(guarded, u)
+    passing = [i for i, m in enumerate(simple.measurements) if m.row.final_status == "pass"]
+    assert passing
+    for i in passing:
+        row = guarded.measurements[i].row
+        assert row.final_status == "not proven" and "U incomplete" in row.note
+    assert guarded.n_passed == 0 and guarded.n_not_proven == len(passing)
+    assert guarded.n_failed == simple.n_failed and not guarded.passed
+    expected = "fail" if simple.n_failed else "not proven"
+    assert guarded.verdict == expected and guarded.to_json()["result"] == expected
