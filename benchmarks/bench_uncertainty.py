@@ -1,0 +1,167 @@
+"""Coverage of the stated uncertainties (issue #19): does the true error lie within U (k = 2)?
+
+    python benchmarks/bench_uncertainty.py --seeds 30                  # modern cell
+    python benchmarks/bench_uncertainty.py --seeds 30 --randomised     # another sensor per seed
+    python benchmarks/bench_uncertainty.py --report                    # the tables, from cache
+
+Each seed is an independent job on the virtual cell: a new calibration session, its
+calibration (with the covariance the file now carries), a new sweep of the same scene, the
+scan, the measurement with ``configs/plans/modern_sweep.toml`` and the EF check. With
+``--randomised`` each seed also draws another sensor (camera, lens, laser geometry, hand-eye,
+robot repeatability, noise: :func:`scanner.virtual_cell.random_cell.randomised_cell`).
+
+For each characteristic (sphere spacing, both sphere diameters, the plate's flatness, every EF
+length) the true error is the measured value minus the cell's exact geometry (the plate is
+perfectly flat). Reported per characteristic: the share of cases with ``|error| <= U`` (the
+aim 95 %, accepted 90-99 %), the 95th percentile of ``|error|``, the mean U and its ratio to
+that percentile (at most 2: honest, not inflated), and what the propagation costs in
+``scanner measure``'s time. Every seed's result is cached under ``--work`` (resumable).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+
+from metrology.measure import measure_cloud
+from metrology.uncertainty import measurement_uncertainties
+from scanner.app import stages
+from scanner.core.config import resolve_config
+from scanner.scanning.geometry import scan_geometry_of
+from scanner.virtual_cell import load_cell
+from scanner.virtual_cell.random_cell import randomised_cell
+
+#: The plan's characteristics whose truth is the cell's geometry (plan nominal; flatness 0).
+CHARACTERISTICS = ("sphere spacing", "sphere_1 diameter", "sphere_2 diameter", "plate flatness")
+PLAN = "modern_sweep"
+
+
+def run_seed(seed: int, randomised: bool, work: Path, again: bool = False) -> dict:
+    """One independent job; returns (and caches) its errors and uncertainties.
+
+    ``again``: measure and check once more from the cached sessions, calibration and cloud
+    (after a change to the propagation), without simulating, calibrating or scanning.
+    """
+    kind = "randomised" if randomised else "modern"
+    folder = work / f"{kind}-{seed:03d}"
+    cached = folder / "result.json"
+    if cached.is_file() and not again:
+        return json.loads(cached.read_text())
+    sim = folder / "sim"
+    seconds = json.loads(cached.read_text())["seconds"] if again else {}
+    if not again:
+        folder.mkdir(parents=True, exist_ok=True)
+        cell = load_cell("modern")
+        if randomised:
+            cell = randomised_cell(cell, np.random.default_rng(10_000 + seed))
+        t0 = time.perf_counter()
+        stages.simulate(cell, sim, seed=seed, workers=2)
+        t1 = time.perf_counter()
+        stages.calibrate(sim / "calibration", folder / "cal.json", report=None)
+        t2 = time.perf_counter()
+        stages.scan([sim / "sweep"], folder / "cal.json", folder / "cloud.ply")
+        t3 = time.perf_counter()
+        shutil.rmtree(sim / "calibration", ignore_errors=True)  # the sweep and check stay
+        seconds = {"simulate": t1 - t0, "calibrate": t2 - t1, "scan": t3 - t2}
+    t3 = time.perf_counter()
+    judged = stages.measure(folder / "cloud.ply", PLAN, folder / "measure.json")
+    t4 = time.perf_counter()
+    # the propagation's own time, for its share of the measurement's
+    report = measure_cloud(folder / "cloud.ply", resolve_config(PLAN, "plans"))
+    geometry, _ = scan_geometry_of(folder / "cloud.ply")
+    t5 = time.perf_counter()
+    measurement_uncertainties(report, geometry)
+    t6 = time.perf_counter()
+    ef = stages.check(sim / "check", folder / "cal.json", folder / "ef.json", report=None)
+    rows = []
+    for name, value, error in [
+        (m.spec.name, m, m.row.deviation)
+        for m in judged.result.measurements
+        if m.spec.name in CHARACTERISTICS and m.row.actual is not None
+    ] + [("EF length", e, e.error_mm) for e in ef.result.valid]:
+        unc = value.uncertainty
+        rows.append(
+            {
+                "name": name,
+                "error": error,
+                "u": None if unc is None else unc.u,
+                "U": None if unc is None else unc.U,
+                "budget": None if unc is None else {c.source: c.u for c in unc.budget},
+            }
+        )
+    seconds.update(measure=t4 - t3, uncertainty=t6 - t5)
+    result = {"seed": seed, "kind": kind, "rows": rows, "seconds": seconds}
+    cached.write_text(json.dumps(result, indent=1))
+    return result
+
+
+def summarise(results: list[dict]) -> str:
+    lines = [
+        "| characteristic | cases | within U | p95 of abs(error), mm | mean U, mm "
+        "| mean U / p95 | largest share of u² |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    names = list(dict.fromkeys(r["name"] for res in results for r in res["rows"]))
+    for name in names:
+        rows = [r for res in results for r in res["rows"] if r["name"] == name and r["U"]]
+        if not rows:
+            continue
+        err = np.abs([r["error"] for r in rows])
+        big_u = np.array([r["U"] for r in rows])
+        p95 = float(np.quantile(err, 0.95))
+        shares: dict[str, float] = {}
+        for r in rows:
+            for k, v in (r["budget"] or {}).items():
+                shares[k] = shares.get(k, 0.0) + v**2 / max(r["u"] ** 2, 1e-300)
+        top = max(shares, key=lambda k: shares[k])
+        lines.append(
+            f"| {name} | {len(rows)} | {np.mean(err <= big_u) * 100:.0f} % | {p95:.4f} | "
+            f"{big_u.mean():.4f} | {big_u.mean() / p95:.2f} | {top} "
+            f"({shares[top] / len(rows) * 100:.0f} %) |"
+        )
+    unc = np.array([r["seconds"]["uncertainty"] for r in results])
+    meas = np.array([r["seconds"]["measure"] for r in results])
+    lines.append("")
+    lines.append(
+        f"Propagation time: {unc.mean():.2f} s per measurement, {np.mean(unc / (meas - unc)) * 100:.0f} % "
+        f"of the rest of `scanner measure`'s stage ({(meas - unc).mean():.2f} s); "
+        f"{len(results)} seeds, {platform.node()} ({platform.machine()})."
+    )
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=int, default=30)
+    parser.add_argument("--first-seed", type=int, default=0)
+    parser.add_argument("--randomised", action="store_true")
+    parser.add_argument("--work", type=Path, default=Path("/tmp/bench_uncertainty"))
+    parser.add_argument("--report", action="store_true", help="summarise the cache only")
+    parser.add_argument(
+        "--again", action="store_true", help="measure the cached clouds again (no simulation)"
+    )
+    args = parser.parse_args(argv)
+    kind = "randomised" if args.randomised else "modern"
+    results = []
+    if args.report:
+        for path in sorted(args.work.glob(f"{kind}-*/result.json")):
+            results.append(json.loads(path.read_text()))
+    else:
+        for seed in range(args.first_seed, args.first_seed + args.seeds):
+            t0 = time.perf_counter()
+            res = run_seed(seed, args.randomised, args.work, args.again)
+            results.append(res)
+            print(f"{kind} seed {seed}: {time.perf_counter() - t0:.0f} s", flush=True)
+    print(f"\n{kind} cell, {len(results)} seeds\n")
+    print(summarise(results))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
