@@ -294,6 +294,35 @@ def write_calibration_report(
             else ""
         ),
     )
+    cov = cal.covariance
+    if cov is not None:
+        sd = cov.std
+        body += rep.section(
+            "Uncertainty carried into measurements (covariance key)",
+            rep.key_value_table(
+                {
+                    "how estimated": cov.method,
+                    "fx fy cx cy (px, 1 sigma)": " ".join(
+                        _fmt(sd[k], None, 4) for k in ("fx", "fy", "cx", "cy")
+                    ),
+                    "light-plane tilt (deg) / offset d (mm)": (
+                        f"{np.degrees(np.hypot(sd['plane_a'], sd['plane_b'])):.5f} / "
+                        f"{sd['plane_d']:.4f}"
+                    ),
+                    "hand-eye rotation (deg, cam x y z)": " ".join(
+                        _fmt(np.degrees(sd[k]), None, 5) for k in ("cam_rx", "cam_ry", "cam_rz")
+                    ),
+                    "hand-eye translation (mm, cam x y z)": " ".join(
+                        _fmt(sd[k], None, 4) for k in ("cam_tx", "cam_ty", "cam_tz")
+                    ),
+                    "robot repeatability (deg / mm per axis)": (
+                        f"{cov.robot_rotation_deg:.4f} / {cov.robot_translation_mm:.4f}"
+                    ),
+                }
+            ),
+            note="Each measurement's uncertainty budget carries these through the same fits "
+            "(docs/UNCERTAINTY.md).",
+        )
     per_view = {str(k): v for k, v in result.per_view_rms_px.items()}
     if per_view:
         body += rep.section(
