@@ -11,6 +11,7 @@ Layout (all coordinates in the base frame, mm)::
     name = "sphere bar and plate"
     threshold_mm = 0.2                  # default RANSAC inlier distance of the fits
     decision_rule = "simple"            # or "guarded": pass only inside tolerance - U
+    instrument = { probing_size_mm = 0.06, sphere_spacing_mm = 0.025 }  # verified PS, SD
 
     [[features]]
     name = "sphere_1"
@@ -261,6 +262,24 @@ class MeasurementSpec:
 
 
 @dataclass(frozen=True)
+class InstrumentSpec:
+    """The sensor's own systematic errors as its verification measured them (VDI/VDE 2634-2
+    acceptance, ``scanner acceptance``): the largest size error of a sphere (PS) and of a
+    sphere spacing (SD), mm. They enter each diameter's and each centre distance's budget as
+    type B contributions (rectangular, ``u = value / sqrt(3)``): the stripe's biases on
+    curved surfaces that no single scan can show. None: not known (and named as missing)."""
+
+    probing_size_mm: float | None = None
+    sphere_spacing_mm: float | None = None
+
+    def __post_init__(self) -> None:
+        for key in ("probing_size_mm", "sphere_spacing_mm"):
+            v = getattr(self, key)
+            if v is not None and not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"instrument.{key}: expected a number >= 0, got {v}")
+
+
+@dataclass(frozen=True)
 class Plan:
     """An inspection plan: features to fit and measurements to report."""
 
@@ -274,6 +293,8 @@ class Plan:
     decision_rule: DecisionRule = "simple"
     """How each measurement's status follows from its value, tolerance and uncertainty U
     (:data:`scanner.core.tolerance.DecisionRule`): ``simple`` or ``guarded`` acceptance."""
+    instrument: InstrumentSpec = field(default_factory=InstrumentSpec)
+    """The sensor's verified systematic errors, for the uncertainty budgets."""
 
     def __post_init__(self) -> None:
         if self.decision_rule not in DECISION_RULES:

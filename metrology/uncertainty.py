@@ -334,6 +334,31 @@ def measurement_uncertainties(
                 )
             )
 
+    # the sensor's own biases on curved surfaces, as its verification measured them (type B)
+    inst = report.plan.instrument
+    for i, m in enumerate(report.measurements):
+        figure = {
+            "diameter": ("probing_size_mm", "size"),
+            "distance": ("sphere_spacing_mm", "length"),
+        }
+        if m.spec.type not in figure:
+            continue
+        key, what = figure[m.spec.type]
+        value = getattr(inst, key)
+        if value is None:
+            own_missing[i].append(
+                f"the instrument's {what} error (no instrument.{key} in the plan)"
+            )
+            continue
+        budget[i].append(
+            Contribution(
+                f"instrument ({what} error)",
+                value / math.sqrt(3.0),
+                f"type B: +-{value:g} mm from the sensor's verification (plan instrument.{key}), "
+                "rectangular",
+            )
+        )
+
     results: list[Uncertainty | None] = []
     for value, row, own in zip(reference, budget, own_missing):
         if not math.isfinite(value) or not row:

@@ -20,6 +20,7 @@ BALL_RADIUS = 12.7
 PLAN = """
 name = "ball on a table"
 threshold_mm = 0.3
+instrument = { probing_size_mm = 0.004, sphere_spacing_mm = 0.004 }
 
 [[features]]
 name = "ball"

@@ -229,7 +229,8 @@ def test_measure_command_writes_json_csv_html(tmp_path: Path, capsys, monkeypatc
     # only, and the report says what is missing.
     m = data["measurements"][1]
     assert m["U"] == pytest.approx(2 * m["u"]) and 0 < m["u"] < 0.05
-    assert [c["source"] for c in m["uncertainty"]["budget"]] == ["stripe noise and fit"]
+    sources = [c["source"] for c in m["uncertainty"]["budget"]]
+    assert sources == ["stripe noise and fit", "instrument (size error)"]  # plan's PS
     assert any(".npy" in s for s in m["uncertainty"]["not_included"])
     assert csv_lines[0].endswith(",u,U,decision_rule")
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from metrology.measure import measure_cloud
-from metrology.plan import Plan, load_plan
+from metrology.plan import InstrumentSpec, Plan, load_plan
 from metrology.uncertainty import (
     UncertaintyConfig,
     attach_uncertainties,
@@ -130,7 +130,8 @@ def test_without_the_stops_only_the_noise_share_is_given_and_the_rest_is_named(p
     sweep = ball_sweep()
     report = measure_cloud(sweep.points(np.random.default_rng(5), noise_px=0.1), plan)
     u = measurement_uncertainties(report, None, not_included=("no stops",))
-    assert [c.source for c in u[0].budget] == ["stripe noise and fit"]
+    assert [c.source for c in u[0].budget] == ["stripe noise and fit", "instrument (size error)"]
+    assert u[0].budget[1].u == pytest.approx(0.004 / np.sqrt(3))
     assert "no stops" in u[0].not_included
     assert any("calibration" in s for s in u[0].not_included)
 
@@ -165,6 +166,17 @@ def test_guarded_acceptance_leaves_a_value_near_its_limit_not_proven(plan):
     near = dataclasses.replace(diameter, lower=-tight, upper=tight)
     assert near.final_status == "not proven"
     assert dataclasses.replace(near, rule="simple").final_status == "pass"
+
+
+def test_without_the_instruments_verification_its_error_is_named_missing(plan):
+    sweep = ball_sweep()
+    sweep.calibration.covariance = _covariance(robot_mm=0.01, robot_deg=0.002)
+    bare = dataclasses.replace(plan, instrument=InstrumentSpec())
+    report = measure_cloud(sweep.points(np.random.default_rng(9), noise_px=0.1), bare)
+    u = measurement_uncertainties(report, sweep.geometry(), UncertaintyConfig(draws=8))
+    assert any("instrument.probing_size_mm" in s for s in u[0].not_included)
+    assert any("instrument.sphere_spacing_mm" in s for s in u[1].not_included)
+    assert not any("instrument" in s for s in u[2].not_included)  # flatness: its own range
 
 
 def test_guarded_acceptance_proves_nothing_with_an_incomplete_budget(plan):
