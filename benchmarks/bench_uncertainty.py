@@ -54,7 +54,8 @@ def run_seed(seed: int, randomised: bool, work: Path, again: bool = False) -> di
     if cached.is_file() and not again:
         return json.loads(cached.read_text())
     sim = folder / "sim"
-    seconds = json.loads(cached.read_text())["seconds"] if again else {}
+    again = again and (folder / "cloud.ply").is_file() and (sim / "check").is_dir()
+    seconds = json.loads(cached.read_text())["seconds"] if again and cached.is_file() else {}
     if not again:
         folder.mkdir(parents=True, exist_ok=True)
         cell = load_cell("modern")
