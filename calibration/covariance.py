@@ -154,15 +154,11 @@ def estimate_covariance(
     parts: list[str] = []
     cov = np.zeros((len(PARAMETERS), len(PARAMETERS)))
     # 1. intrinsics, carried through the chain
-    c9 = intrinsics_covariance_matrix(intrinsics)
-    sd = np.sqrt(np.diag(c9))
-    live = sd > 0
-    if np.any(live):
-        corr = c9[np.ix_(live, live)] / np.outer(sd[live], sd[live])
-        w, v = np.linalg.eigh(corr)
-        keep = w > 1e-10 * w.max()
-        dirs = np.zeros((int(keep.sum()), 9))
-        dirs[:, live] = (v[:, keep] * np.sqrt(w[keep])).T * sd[live]
+    # the intrinsics' block alone, through the same square root the readers use
+    intrinsics_only = np.zeros((len(PARAMETERS), len(PARAMETERS)))
+    intrinsics_only[:9, :9] = intrinsics_covariance_matrix(intrinsics)
+    dirs = CalibrationCovariance(intrinsics_only).principal_directions(rel_tol=1e-10)[:, :9]
+    if len(dirs):
         base = solve(camera, *reposed(camera))
         columns = []
         for s in dirs:

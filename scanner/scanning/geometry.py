@@ -94,28 +94,27 @@ class ScanGeometry:
             rows.append(index[(s, f)])
         return cls(calibration, poses, np.asarray(rows, dtype=np.int64)[inverse.reshape(-1)])
 
-    def pixels(self, points_base: NDArray, which: NDArray) -> NDArray:
-        """``(M, 2)`` stripe pixels the points ``points_base[which]`` were triangulated from."""
+    def points_cam(self, points_base: NDArray, which: NDArray) -> NDArray:
+        """``(M, 3)`` the points ``points_base[which]`` in the camera frame of their own stops."""
         base_from_cam = self.base_from_flange[self.frame_index[which]] @ (
             self.calibration.flange_from_cam
         )
         cam_from_base = np.linalg.inv(base_from_cam)
         p = np.einsum("nij,nj->ni", cam_from_base[:, :3, :3], points_base[which])
-        p += cam_from_base[:, :3, 3]
-        return camera_from_calibration(self.calibration).project(p)
+        return p + cam_from_base[:, :3, 3]
+
+    def pixels(self, points_base: NDArray, which: NDArray) -> NDArray:
+        """``(M, 2)`` stripe pixels the points ``points_base[which]`` were triangulated from."""
+        return camera_from_calibration(self.calibration).project(
+            self.points_cam(points_base, which)
+        )
 
     def plane_distances(self, points_base: NDArray, which: NDArray) -> NDArray:
         """``(M,)`` distances (mm) of ``points_base[which]`` from the light plane of their own
         stops: near zero for a cloud this geometry made, large for one it did not (another
         calibration, stops mixed by a voxel filter)."""
-        base_from_cam = self.base_from_flange[self.frame_index[which]] @ (
-            self.calibration.flange_from_cam
-        )
-        cam_from_base = np.linalg.inv(base_from_cam)
-        p = np.einsum("nij,nj->ni", cam_from_base[:, :3, :3], points_base[which])
-        p += cam_from_base[:, :3, 3]
         plane = self.calibration.require_light_plane("calibration", "scan geometry")
-        return np.abs(p @ plane.normal + plane.d)
+        return np.abs(self.points_cam(points_base, which) @ plane.normal + plane.d)
 
     def retriangulated(self, calibration: Calibration, pixels: NDArray, which: NDArray) -> NDArray:
         """``(M, 3)`` base-frame points that ``calibration`` gives for the same pixels."""
