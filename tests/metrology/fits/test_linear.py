@@ -1,0 +1,104 @@
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from metrology.fits import fit_circle, fit_cylinder, fit_plane, fit_sphere
+from metrology.fits.linear import linearise
+
+UM = 1e-3  # one micrometre in mm
+
+
+def _cap(rng: np.random.Generator, n: int, radius: float, noise: float) -> np.ndarray:
+    """Points on the upper 60 deg cap of a sphere at (500, 60, 40): what a sweep sees."""
+    polar = np.arccos(rng.uniform(np.cos(np.radians(60)), 1.0, n))
+    azim = rng.uniform(0, 2 * np.pi, n)
+    d = np.column_stack([np.sin(polar) * np.cos(azim), np.sin(polar) * np.sin(azim), np.cos(polar)])
+    return np.array([500.0, 60.0, 40.0]) + d * (radius + rng.normal(0, noise, n))[:, None]
+
+
+def _tilted_plane(rng: np.random.Generator, n: int, noise: float) -> np.ndarray:
+    uv = rng.uniform(-40, 40, (n, 2))
+    z = 0.01 * uv[:, 0] - 0.02 * uv[:, 1] + rng.normal(0, noise, n)
+    return np.column_stack([uv[:, 0] + 600.0, uv[:, 1] - 30.0, z + 5.0])
+
+
+def _half_cylinder(rng: np.random.Generator, n: int, radius: float, noise: float) -> np.ndarray:
+    along = rng.uniform(-40, 40, n)
+    angle = rng.uniform(0, np.pi, n)  # the upper half: what one sweep sees of a bar
+    r = radius + rng.normal(0, noise, n)
+    local = np.column_stack([along, r * np.cos(angle), r * np.sin(angle)])
+    c, s = np.cos(0.3), np.sin(0.3)
+    rot = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    return local @ rot.T + np.array([520.0, 10.0, 30.0])
+
+
+CASES = {
+    "sphere": (lambda rng: _cap(rng, 3000, 12.7, 0.02), fit_sphere, ("center_mm", "radius_mm")),
+    "plane": (lambda rng: _tilted_plane(rng, 5000, 0.02), fit_plane, ("normal", "d_mm")),
+    "cylinder": (
+        lambda rng: _half_cylinder(rng, 4000, 4.0, 0.02),
+        fit_cylinder,
+        ("axis", "radius_mm"),
+    ),
+}
+
+
+@pytest.mark.parametrize("kind", sorted(CASES))
+@pytest.mark.parametrize("move", ["flip residuals", "rigid shift", "smooth warp"])
+def test_the_linearised_fit_agrees_with_a_refit(kind, move):
+    make, fit, fields = CASES[kind]
+    rng = np.random.default_rng(7)
+    points = make(rng)
+    ref = fit(points)
+    lin = linearise(ref, points)
+    assert lin is not None
+    if move == "flip residuals":  # the bootstrap's move: half the points across the surface
+        sign = rng.choice([-1.0, 1.0], len(points))
+        moved = points + ((sign - 1.0) * lin.residuals)[:, None] * lin.normals
+    elif move == "rigid shift":
+        moved = points + np.array([0.02, -0.03, 0.015])
+    else:  # a calibration's sigma: a smooth warp of tens of micrometres
+        moved = points + 1e-3 * np.column_stack(
+            [np.sin(points[:, 1] / 20.0), points[:, 0] / 50.0 - 10.0, np.cos(points[:, 0] / 15.0)]
+        )
+    refit = fit(moved)
+    approx = lin.moved(moved)
+    for name in fields:
+        change = np.atleast_1d(getattr(refit, name) - getattr(ref, name))
+        error = np.atleast_1d(getattr(approx, name) - getattr(refit, name))
+        if name in ("axis", "normal"):
+            error = np.atleast_1d(
+                np.linalg.norm(np.cross(getattr(approx, name), getattr(refit, name)))
+            )
+            assert error.max() < 1e-6, f"{kind} {name}: {error}"
+        else:
+            # first order: the error is a small part of the change (or below 0.1 um)
+            assert np.abs(error).max() < max(0.02 * np.abs(change).max(), 0.1 * UM), (
+                f"{kind} {name}: change {change}, error {error}"
+            )
+    assert abs(approx.range_mm - refit.range_mm) < 0.03 * refit.range_mm
+    assert abs(approx.rms_mm - refit.rms_mm) < 0.03 * refit.rms_mm
+
+
+def test_a_plane_keeps_its_distances_where_the_points_are():
+    rng = np.random.default_rng(3)
+    points = _tilted_plane(rng, 2000, 0.01)
+    ref = fit_plane(points)
+    lin = linearise(ref, points)
+    moved = points + np.array([0.0, 0.0, 0.05])  # the plane lifted by 50 um
+    approx = lin.moved(moved)
+    assert np.allclose(approx.signed_distance(moved), ref.signed_distance(points), atol=1e-9)
+    assert np.allclose(approx.centroid_mm, moved.mean(axis=0))
+
+
+def test_kinds_without_a_linearisation_and_wrong_shapes_are_refused():
+    rng = np.random.default_rng(0)
+    t = rng.uniform(0, 2 * np.pi, 200)
+    circle = fit_circle(np.column_stack([10 * np.cos(t), 10 * np.sin(t), np.zeros(200)]))
+    assert circle
+    assert linearise(circle, np.zeros((200, 3))) is None
+    points = _cap(rng, 500, 12.7, 0.01)
+    lin = linearise(fit_sphere(points), points)
+    with pytest.raises(ValueError, match=r"expected shape \(500, 3\), got \(499, 3\)"):
+        lin.moved(points[:-1])
