@@ -168,7 +168,7 @@ def scan_geometry_of(
             return None, "the cloud has no frame_id and sweep_id columns"
         geometry = ScanGeometry.from_sessions(
             read_calibration(cal_path),
-            [read_session(s) for s in sessions],
+            [read_session(s, check_images=False) for s in sessions],
             arrays["sweep_id"].reshape(-1),
             arrays["frame_id"].reshape(-1),
         )

@@ -100,6 +100,25 @@ def test_the_robot_share_matches_a_robot_that_misses_its_stops(plan):
     np.testing.assert_allclose(per_stop[:2], sd[:2], rtol=0.4)  # not counted twice
 
 
+def test_the_linearised_fits_give_the_budget_the_refits_give(plan):
+    sweep = ball_sweep()
+    sweep.calibration.covariance = _covariance(robot_mm=0.02, robot_deg=0.005)
+    rng = np.random.default_rng(5)
+    report = measure_cloud(sweep.points(rng, noise_px=0.15, robot_mm=0.02, robot_deg=0.005), plan)
+    budgets = [
+        measurement_uncertainties(
+            report, sweep.geometry(), UncertaintyConfig(draws=8, linearised=linearised)
+        )
+        for linearised in (True, False)
+    ]
+    for fast, refit in zip(*budgets, strict=True):
+        # the same draws (same seed): only the first-order update differs
+        assert [c.source for c in fast.budget] == [c.source for c in refit.budget]
+        for a, b in zip(fast.budget, refit.budget, strict=True):
+            assert a.u == pytest.approx(b.u, rel=0.05, abs=2e-5), a.source
+        assert fast.u == pytest.approx(refit.u, rel=0.03)
+
+
 def test_a_flatness_is_given_the_range_its_noise_alone_would_show(plan):
     sweep = ball_sweep()
     sweep.calibration.covariance = _covariance()
@@ -131,7 +150,8 @@ def test_without_the_stops_only_the_noise_share_is_given_and_the_rest_is_named(p
     report = measure_cloud(sweep.points(np.random.default_rng(5), noise_px=0.1), plan)
     u = measurement_uncertainties(report, None, not_included=("no stops",))
     assert [c.source for c in u[0].budget] == ["stripe noise and fit", "instrument (size error)"]
-    assert u[0].budget[1].u == pytest.approx(0.004 / np.sqrt(3))
+    # the verification's bound, less the noise it holds
+    assert u[0].u == pytest.approx(max(0.004 / np.sqrt(3), u[0].budget[0].u))
     assert "no stops" in u[0].not_included
     assert any("calibration" in s for s in u[0].not_included)
 
@@ -195,3 +215,19 @@ def test_guarded_acceptance_proves_nothing_with_an_incomplete_budget(plan):
     assert guarded.n_failed == simple.n_failed and not guarded.passed
     expected = "fail" if simple.n_failed else "not proven"
     assert guarded.verdict == expected and guarded.to_json()["result"] == expected
+
+
+@pytest.mark.parametrize("size_mm", [0.001, 0.2])
+def test_the_instruments_bound_adds_only_what_the_modelled_sources_leave(plan, size_mm):
+    sweep = ball_sweep()
+    sweep.calibration.covariance = _covariance(robot_mm=0.01, robot_deg=0.002)
+    bound = InstrumentSpec(probing_size_mm=size_mm, sphere_spacing_mm=size_mm)
+    report = measure_cloud(
+        sweep.points(np.random.default_rng(9), noise_px=0.1),
+        dataclasses.replace(plan, instrument=bound),
+    )
+    u = measurement_uncertainties(report, sweep.geometry(), UncertaintyConfig(draws=8))[0]
+    modelled = np.sqrt(sum(c.u**2 for c in u.budget if not c.source.startswith("instrument")))
+    assert modelled > 0.002
+    # the verification's bound holds the calibration, robot and noise: u is the larger of the two
+    assert u.u == pytest.approx(max(modelled, size_mm / np.sqrt(3.0)), rel=1e-9)
