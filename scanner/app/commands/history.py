@@ -57,7 +57,9 @@ def run(args: argparse.Namespace) -> int:
     )
     print(header)
     for r in records:
-        passed = "-" if r.passed is None else ("yes" if r.passed else "no")
+        passed = (
+            "-" if r.passed is None else ("yes" if r.passed else "n.p." if r.not_proven else "no")
+        )
         detail = r.error_text or (r.report_path or "")
         print(
             f"{r.id:>6}  {r.command_name:<20} {r.sequence:>5} {r.parameter:>4}  {r.state:<11} "

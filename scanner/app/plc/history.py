@@ -52,9 +52,14 @@ CREATE TABLE IF NOT EXISTS jobs (
     error_text TEXT NOT NULL DEFAULT '',
     session_path TEXT,
     report_path TEXT,
-    artefacts TEXT NOT NULL DEFAULT '[]'
+    artefacts TEXT NOT NULL DEFAULT '[]',
+    not_proven INTEGER NOT NULL DEFAULT 0
 );
 """
+
+#: Columns added after the first release, with their definitions: a history written before
+#: them gains them when opened for writing, and reads as their default when opened read-only.
+_LATER_COLUMNS = {"not_proven": "INTEGER NOT NULL DEFAULT 0"}
 
 _COLUMNS = (
     "id, command, command_name, sequence, parameter, state, started_at, finished_at, passed, "
@@ -62,6 +67,7 @@ _COLUMNS = (
     "artefacts"
 )
 _COLUMN_NAMES = frozenset(c.strip() for c in _COLUMNS.split(","))
+_LATER_DEFAULTS = {"not_proven": "0"}
 
 
 def _now() -> str:
@@ -89,12 +95,15 @@ class JobRecord:
     session_path: str | None
     report_path: str | None
     artefacts: tuple[str, ...]
+    not_proven: bool = False
+    """Guarded acceptance could not prove conformity (status bit 7); ``passed`` is false."""
 
     @classmethod
     def _from_row(cls, row: Sequence) -> JobRecord:
         values = list(row)
         values[8] = None if values[8] is None else bool(values[8])
         values[16] = tuple(json.loads(values[16] or "[]"))
+        values[17] = bool(values[17])
         return cls(*values)
 
     def to_dict(self) -> dict[str, Any]:
@@ -127,6 +136,15 @@ class JobHistory:
         self.read_only = read_only
         self._lock = threading.Lock()
         self._db = self._open_read_only() if read_only else self._open_read_write()
+        present = {r[1] for r in self._db.execute("PRAGMA table_info(jobs)")}
+        # what a SELECT reads: every column, a later one as its default where the file lacks it
+        self._select = ", ".join(
+            [_COLUMNS]
+            + [
+                name if name in present else f"{_LATER_DEFAULTS[name]} AS {name}"
+                for name in _LATER_COLUMNS
+            ]
+        )
 
     def _open_read_only(self) -> sqlite3.Connection:
         path = Path(self.path)
@@ -168,6 +186,10 @@ class JobHistory:
             db.execute("PRAGMA synchronous=FULL")
             db.execute("PRAGMA busy_timeout=5000")
             db.executescript(_SCHEMA)
+            present = {r[1] for r in db.execute("PRAGMA table_info(jobs)")}
+            for name, definition in _LATER_COLUMNS.items():
+                if name not in present:
+                    db.execute(f"ALTER TABLE jobs ADD COLUMN {name} {definition}")
         except sqlite3.Error as exc:
             db.close()
             raise InputError(path, f"cannot open the job history for writing ({exc})") from None
@@ -234,6 +256,7 @@ class JobHistory:
         state: str,
         *,
         passed: bool | None = None,
+        not_proven: bool = False,
         results_um: Sequence[float | None] = (None, None, None),
         error_code: int = 0,
         error_text: str = "",
@@ -257,7 +280,7 @@ class JobHistory:
             self._db.execute(
                 "UPDATE jobs SET state=?, finished_at=?, passed=?, result1_um=?, result2_um=?,"
                 " result3_um=?, error_code=?, error_text=?, session_path=?, report_path=?,"
-                " artefacts=? WHERE id=?",
+                " artefacts=?, not_proven=? WHERE id=?",
                 (
                     state,
                     _now(),
@@ -270,6 +293,7 @@ class JobHistory:
                     None if session_path is None else str(session_path),
                     None if report_path is None else str(report_path),
                     json.dumps([str(a) for a in artefacts]),
+                    int(bool(not_proven)),
                     job_id,
                 ),
             )
@@ -291,7 +315,9 @@ class JobHistory:
     def get(self, job_id: int) -> JobRecord | None:
         """The record with this id, or ``None``."""
         with self._lock:
-            row = self._db.execute(f"SELECT {_COLUMNS} FROM jobs WHERE id=?", (job_id,)).fetchone()
+            row = self._db.execute(
+                f"SELECT {self._select} FROM jobs WHERE id=?", (job_id,)
+            ).fetchone()
         return None if row is None else JobRecord._from_row(row)
 
     def latest(self, limit: int = 20) -> list[JobRecord]:
@@ -300,6 +326,6 @@ class JobHistory:
             raise ValueError(f"expected limit >= 1, got {limit}")
         with self._lock:
             rows = self._db.execute(
-                f"SELECT {_COLUMNS} FROM jobs ORDER BY id DESC LIMIT ?", (limit,)
+                f"SELECT {self._select} FROM jobs ORDER BY id DESC LIMIT ?", (limit,)
             ).fetchall()
         return [JobRecord._from_row(r) for r in rows]

@@ -257,6 +257,7 @@ class PlcService:
             bool(rec.passed),
             error,
             result_valid=rec.command != Command.CLEAR_ERROR,
+            not_proven=rec.not_proven and error == ErrorCode.NONE,
         )
         log.info("restored job %d (%s): sequence %d", rec.id, rec.state, rec.sequence)
 
@@ -358,6 +359,7 @@ class PlcService:
                 job.ctx.job_id,
                 state,
                 passed=passed if outcome is not None else None,
+                not_proven=outcome is not None and outcome.not_proven and error == ErrorCode.NONE,
                 results_um=results,
                 error_code=int(error),
                 error_text=message,

@@ -60,3 +60,23 @@ def test_finish_checks_its_input(tmp_path: Path):
             history.finish(job_id, "done", results_um=(1.0,))
         with pytest.raises(ValueError, match="expected limit >= 1"):
             history.latest(0)
+
+
+def test_a_history_written_before_not_proven_is_read_and_extended(tmp_path: Path):
+    db = tmp_path / "old.sqlite"
+    with JobHistory(db) as history:
+        old = history.start(1, "check", 1, 0)
+        history.finish(old, "done", passed=False)
+    con = sqlite3.connect(db)  # the first release's table: no not_proven column
+    con.execute("ALTER TABLE jobs DROP COLUMN not_proven")
+    con.commit()
+    con.close()
+    with JobHistory(db, read_only=True) as history:  # read as it is, nothing written
+        assert history.get(old).not_proven is False  # type: ignore[union-attr]
+    assert "not_proven" not in {
+        r[1] for r in sqlite3.connect(db).execute("PRAGMA table_info(jobs)")
+    }
+    with JobHistory(db) as history:  # opened for writing: the column is added
+        job = history.start(2, "scan", 2, 0)
+        history.finish(job, "done", passed=False, not_proven=True)
+        assert [r.not_proven for r in history.latest(5)] == [True, False]

@@ -299,6 +299,24 @@ def test_restart_keeps_history_and_never_reruns_the_last_command(tmp_path: Path)
     assert [r.id for r in _history(config)] == [3, 2, 1]
 
 
+def test_a_not_proven_result_is_shown_again_after_a_restart(tmp_path: Path):
+    config = make_config(tmp_path)
+    with running_service(config, FakeJobs(config)) as svc:
+        plc = Plc(svc.port)
+        before = plc.run(2, 21, parameter=995)["bits"]
+        plc.close()
+    (rec,) = _history(config)
+    assert (rec.passed, rec.not_proven) == (False, True)
+    with running_service(config, FakeJobs(config)) as svc:
+        plc = Plc(svc.port)
+        st = plc.status()
+        plc.close()
+    assert (
+        st["bits"] == before == Status.READY | Status.DONE | Status.RESULT_VALID | Status.NOT_PROVEN
+    )
+    assert st["ack"] == 21
+
+
 def test_stop_during_an_uncooperative_job_records_it_interrupted(tmp_path: Path):
     config = replace(
         make_config(tmp_path),
