@@ -44,7 +44,12 @@ from metrology.measure import MeasurementReport, evaluate_measurement, fit_featu
 from scanner.core.tolerance import STATUS_NOT_PROVEN, STATUS_PASS
 from scanner.scanning.geometry import ScanGeometry
 
-__all__ = ["UncertaintyConfig", "attach_uncertainties", "measurement_uncertainties"]
+__all__ = [
+    "UncertaintyConfig",
+    "attach_uncertainties",
+    "deviation_calibration_share",
+    "measurement_uncertainties",
+]
 
 
 @dataclass(frozen=True)
@@ -467,3 +472,69 @@ def attach_uncertainties(
             )
         measurements.append(dataclasses.replace(m, row=row, uncertainty=u))
     return dataclasses.replace(report, measurements=measurements)
+
+
+def deviation_calibration_share(
+    geometry: ScanGeometry,
+    points_cloud: NDArray,
+    normals_cloud: NDArray,
+    which: NDArray,
+    max_points: int = 2000,
+    seed: int = 0,
+) -> tuple[float | None, str]:
+    """The calibration's share of a point's deviation from a nominal surface it was aligned to.
+
+    Each one-sigma principal direction of the calibration's covariance re-triangulates the
+    points from their pixels; a point's deviation moves by ``n . dp``. The alignment to the
+    nominal (a best fit) takes up the rigid part of those moves, so only what a rigid motion
+    about the points' centre cannot explain is kept; the changes add in quadrature over the
+    directions. The stripe noise and the robot's misses are not here: they are in the points'
+    spread around the nominal already.
+
+    Parameters
+    ----------
+    geometry : ScanGeometry
+        Each point's stop and the calibration (with its ``covariance``).
+    points_cloud : ndarray, shape (N, 3)
+        The cloud as scanned (base frame), mm.
+    normals_cloud : ndarray, shape (N, 3)
+        The nominal's unit normal at each point's closest point, in the cloud's frame.
+    which : ndarray of int
+        The points to evaluate (for example those within the outlier limit).
+    max_points : int
+        At most this many of them, drawn at random (the share is smooth over the part).
+    seed : int
+
+    Returns
+    -------
+    (u, reason)
+        The 95th percentile over the points of the one-sigma change, mm, and ``""``; or
+        ``None`` and why it could not be given.
+    """
+    covariance = geometry.calibration.covariance
+    if covariance is None:
+        return None, "calibration (the calibration file has no covariance)"
+    dirs = covariance.principal_directions()
+    if not len(dirs):
+        return None, "calibration (its covariance is zero)"
+    which = np.asarray(which)
+    if len(which) > max_points:
+        which = np.sort(np.random.default_rng(seed).choice(which, max_points, replace=False))
+    if len(which) < 10:
+        return None, f"calibration (only {len(which)} points to evaluate)"
+    p = points_cloud[which]
+    n = normals_cloud[which]
+    # the alignment's first-order response: a small rotation w and shift t about the centre
+    # move a deviation by n . (w x (p - c) + t)
+    rigid = np.hstack([np.cross(p - p.mean(axis=0), n), n])
+    pixels = geometry.pixels(points_cloud, which)
+    zero = geometry.retriangulated(
+        geometry.calibration.corrected(np.zeros(covariance.matrix.shape[0])), pixels, which
+    )
+    total = np.zeros(len(which))
+    for direction in dirs:
+        moved = geometry.retriangulated(geometry.calibration.corrected(direction), pixels, which)
+        change = np.einsum("ij,ij->i", n, moved - zero)
+        taken, *_ = np.linalg.lstsq(rigid, change, rcond=None)
+        total += (change - rigid @ taken) ** 2
+    return float(np.quantile(np.sqrt(total), 0.95)), ""

@@ -22,7 +22,9 @@ from metrology.inspect.result import (
 )
 from metrology.inspect.spec import DatumSpec, InspectionRegion, InspectionSpec
 from metrology.inspect.surface import NominalSurface
+from metrology.uncertainty import deviation_calibration_share
 from scanner.formats.meshes import TriangleMesh
+from scanner.scanning.geometry import ScanGeometry
 
 __all__ = ["AlignmentFailed", "inspect_cloud", "judge_regions"]
 
@@ -143,20 +145,30 @@ def judge_regions(
 
 
 def _uncertainty(
-    alignment: AlignmentResult, points_nominal: NDArray, normals: NDArray, deviation: NDArray
+    alignment: AlignmentResult,
+    points_nominal: NDArray,
+    normals: NDArray,
+    deviation: NDArray,
+    calibration: tuple[float | None, str] = (None, ""),
 ) -> InspectionUncertainty:
-    """1-sigma of a point's deviation: the cloud's noise and the pose's covariance."""
+    """1-sigma of a point's deviation: the cloud's noise, the pose's covariance and the
+    calibration's share ``(u or None, why not)``."""
     noise = 1.4826 * float(np.median(np.abs(deviation - np.median(deviation))))
+    cal_u, why = calibration
+    missing = () if cal_u is not None else (why or "calibration (the cloud's stops not known)",)
     cov = alignment.covariance
     if not np.all(np.isfinite(cov)):
-        return InspectionUncertainty(noise, float("nan"), float("nan"))
+        return InspectionUncertainty(
+            noise, float("nan"), float("nan"), calibration_mm=cal_u, not_included=missing
+        )
     step = max(1, len(points_nominal) // 20_000)
     p, n = points_nominal[::step], normals[::step]
     centre = p.mean(axis=0)
     # A small motion (w, t) about the fit's centre moves a point's deviation by n.(w x (p - c) + t).
     j = np.hstack([np.cross(p - centre, n), n])
     align = float(np.sqrt(np.max(np.einsum("ij,jk,ik->i", j, cov, j))))
-    return InspectionUncertainty(noise, align, float(np.hypot(noise, align)))
+    combined = float(np.sqrt(noise**2 + align**2 + (cal_u or 0.0) ** 2))
+    return InspectionUncertainty(noise, align, combined, calibration_mm=cal_u, not_included=missing)
 
 
 def inspect_cloud(
@@ -165,6 +177,8 @@ def inspect_cloud(
     spec: InspectionSpec,
     *,
     options: AlignOptions | None = None,
+    geometry: ScanGeometry | None = None,
+    geometry_missing: str = "",
 ) -> InspectionResult:
     """Align ``points_cloud`` to ``nominal`` without a guess and judge every point's deviation.
 
@@ -178,6 +192,9 @@ def inspect_cloud(
         Bands, regions, sections and the alignment method.
     options : AlignOptions, optional
         Settings of the global search and the fits.
+    geometry : ScanGeometry, optional
+        Each point's stop and the calibration it was scanned with: the uncertainty then holds
+        the calibration covariance's share; ``geometry_missing`` says why there is none.
 
     Returns
     -------
@@ -219,7 +236,22 @@ def inspect_cloud(
             f"(rms {alignment.rms_mm:.3g} mm): is this a scan of this part?"
         )
     regions = judge_regions(spec, points_nominal, near.normals, deviation, outlier)
-    uncertainty = _uncertainty(alignment, points_nominal[kept], near.normals[kept], deviation[kept])
+    if geometry is not None and len(geometry.frame_index) == len(points):
+        # the nominal's normals in the cloud's frame: n_cloud = R^T n_nominal
+        rot = alignment.nominal_from_cloud[:3, :3]
+        try:
+            calibration = deviation_calibration_share(
+                geometry, points, near.normals @ rot, np.flatnonzero(kept)
+            )
+        except (ValueError, np.linalg.LinAlgError) as exc:  # the deviations stand without it
+            calibration = (None, f"calibration ({exc})")
+    elif geometry is not None:
+        calibration = (None, "calibration (the cloud's stops do not match its points)")
+    else:
+        calibration = (None, geometry_missing)
+    uncertainty = _uncertainty(
+        alignment, points_nominal[kept], near.normals[kept], deviation[kept], calibration
+    )
     seconds["deviations"] = time.perf_counter() - t0
     failed = any(r.status == "fail" for r in regions)
     return InspectionResult(

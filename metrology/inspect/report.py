@@ -286,6 +286,10 @@ def _uncertainty_section(result: InspectionResult) -> str:
     items = [
         ("point noise, 1 sigma (mm)", u.noise_mm),
         ("alignment, 1 sigma (mm)", u.alignment_mm),
+        (
+            "calibration, 1 sigma, 95 % of the points within (mm)",
+            u.calibration_mm if u.calibration_mm is not None else "not known",
+        ),
         ("combined standard uncertainty u (mm)", u.combined_mm),
         ("expanded uncertainty U, k = 2 (mm)", 2.0 * u.combined_mm),
     ]
@@ -295,6 +299,8 @@ def _uncertainty_section(result: InspectionResult) -> str:
         if band > 0 and np.isfinite(u.combined_mm)
         else ""
     )
+    if u.not_included:
+        note += f" Not included: {'; '.join(u.not_included)}."
     return rep.section("Uncertainty of a point's deviation", rep.key_value_table(items), note)
 
 

@@ -148,21 +148,30 @@ class InspectionUncertainty:
     """Standard uncertainty (1 sigma, mm) of one point's deviation, and its sources.
 
     ``noise_mm`` is the cloud's point noise (robust spread of the residuals of the fit,
-    away from real form deviations); ``alignment_mm`` the largest 1-sigma shift of a point's
-    deviation from the pose's covariance; ``combined_mm`` their root sum of squares.
+    away from real form deviations; it holds the stripe noise and the robot's misses between
+    stops); ``alignment_mm`` the largest 1-sigma shift of a point's deviation from the pose's
+    covariance; ``calibration_mm`` the 95th percentile over the points of the calibration
+    covariance's share after the alignment took up its rigid part
+    (:func:`metrology.uncertainty.deviation_calibration_share`), ``None`` where the cloud's
+    stops or the covariance are not known (named in ``not_included``); ``combined_mm`` their
+    root sum of squares.
     """
 
     noise_mm: float
     alignment_mm: float
     combined_mm: float
+    calibration_mm: float | None = None
+    not_included: tuple[str, ...] = ()
 
-    def to_json(self) -> dict[str, float]:
+    def to_json(self) -> dict[str, Any]:
         return {
             "noise_mm": self.noise_mm,
             "alignment_mm": self.alignment_mm,
+            "calibration_mm": self.calibration_mm,
             "u_mm": self.combined_mm,
             "U_mm": 2.0 * self.combined_mm,
             "k": 2.0,
+            "not_included": list(self.not_included),
         }
 
 

@@ -687,7 +687,10 @@ def inspect(
     inspection_spec = load_inspection_spec(spec_path)
     nominal = read_mesh(nominal_path)
     points_cloud, _ = read_points(cloud_path)
-    result = inspect_cloud(points_cloud, nominal, inspection_spec)
+    geometry, why = scan_geometry_of(cloud_path)  # the calibration's share, where known
+    result = inspect_cloud(
+        points_cloud, nominal, inspection_spec, geometry=geometry, geometry_missing=why
+    )
     result.nominal_path = str(nominal_path)
     result.cloud_path = str(cloud_path)
     result.spec_path = str(spec_path)

@@ -8,18 +8,21 @@ import dataclasses
 
 import numpy as np
 import pytest
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
 
 from metrology.measure import measure_cloud
 from metrology.plan import InstrumentSpec, Plan, load_plan
 from metrology.uncertainty import (
     UncertaintyConfig,
     attach_uncertainties,
+    deviation_calibration_share,
     measurement_uncertainties,
     noise_range_p95,
 )
 from scanner.formats.calibration_covariance import PARAMETERS, CalibrationCovariance
 from scanner.scanning.triangulate import Triangulator
-from tests.metrology._sweep import PLAN, ball_sweep
+from tests.metrology._sweep import BALL_CENTER, BALL_RADIUS, PLAN, ball_sweep
 
 
 @pytest.fixture(scope="module")
@@ -231,3 +234,47 @@ def test_the_instruments_bound_adds_only_what_the_modelled_sources_leave(plan, s
     assert modelled > 0.002
     # the verification's bound holds the calibration, robot and noise: u is the larger of the two
     assert u.u == pytest.approx(max(modelled, size_mm / np.sqrt(3.0)), rel=1e-9)
+
+
+def _ball_and_table_deviation(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Signed deviation from the nominal ball on its table, and the nominal's normals."""
+    q = points - BALL_CENTER
+    dist = np.linalg.norm(q, axis=1)
+    on_ball = dist < BALL_RADIUS + 0.5
+    dev = np.where(on_ball, dist - BALL_RADIUS, points[:, 2] + BALL_RADIUS)
+    normals = np.where(on_ball[:, None], q / dist[:, None], [0.0, 0.0, 1.0])
+    return dev, normals
+
+
+def _one_direction(name: str, sigma: float) -> CalibrationCovariance:
+    m = np.zeros((len(PARAMETERS), len(PARAMETERS)))
+    m[PARAMETERS.index(name), PARAMETERS.index(name)] = sigma**2
+    return CalibrationCovariance(m, 0.0, 0.0, "test")
+
+
+def test_a_deviations_calibration_share_is_what_the_alignment_leaves():
+    sweep = ball_sweep()
+    points = sweep.points()
+    dev, normals = _ball_and_table_deviation(points)
+    which = np.flatnonzero(np.abs(dev) < 0.5)
+    # a hand-eye shift moves every stop of this sweep alike: the alignment takes it all
+    sweep.calibration.covariance = _one_direction("cam_tx", 0.05)
+    u, why = deviation_calibration_share(sweep.geometry(), points, normals, which)
+    assert why == "" and u < 1e-4
+    # the plane's distance scales the ball against the table: the alignment cannot take that
+    sweep.calibration.covariance = _one_direction("plane_d", 0.05)
+    u, _ = deviation_calibration_share(sweep.geometry(), points, normals, which, max_points=5000)
+    moved = Triangulator(
+        sweep.calibration.corrected(np.eye(len(PARAMETERS))[PARAMETERS.index("plane_d")] * 0.05),
+        grid_step_px=0,
+    ).points_base(sweep.pixels, sweep.frame_index, sweep.base_from_flange)[which]
+
+    def realigned(x: np.ndarray) -> np.ndarray:
+        rigid = Rotation.from_rotvec(x[:3]).apply(moved - moved.mean(0)) + moved.mean(0) + x[3:]
+        return _ball_and_table_deviation(rigid)[0] - dev[which]
+
+    left = realigned(least_squares(realigned, np.zeros(6)).x)
+    assert u > 5e-4
+    assert u == pytest.approx(np.quantile(np.abs(left), 0.95), rel=0.15)
+    sweep.calibration.covariance = None
+    assert deviation_calibration_share(sweep.geometry(), points, normals, which)[0] is None
