@@ -25,6 +25,7 @@ import json
 import platform
 import shutil
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -100,7 +101,7 @@ def run_seed(seed: int, randomised: bool, work: Path, again: bool = False) -> di
     # the user's figure: the whole `scanner measure` command (start-up, reading, the reports)
     t7 = time.perf_counter()
     subprocess.run(
-        ["scanner", "measure", str(folder / "cloud.ply"), "--plan", PLAN,
+        [sys.executable, "-m", "scanner", "measure", str(folder / "cloud.ply"), "--plan", PLAN,
          "--out", str(folder / "command" / "measure.json")],
         check=True, capture_output=True,
     )  # fmt: skip

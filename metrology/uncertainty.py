@@ -6,7 +6,7 @@ error is carried through the same fits that made the value, with the same points
 
 - **calibration**: the calibration file's covariance (``covariance`` key), linearised along
   its principal directions: each one-sigma direction re-triangulates the points from their
-  own pixels and stops, the features are fitted again, and the value's changes add in
+  own pixels and stops, the features follow, and the value's changes add in
   quadrature (exact for a value linear in the calibration over its sigma, which the small
   corrections are);
 - **robot repeatability**: every stop missed by an independent random motion of the flange
@@ -70,7 +70,7 @@ class UncertaintyConfig:
     linearised : bool
         Move planes, spheres and cylinders to first order in their points' moves
         (:mod:`metrology.fits.linear`) instead of fitting them again in every draw; the same
-        budget (``tests/metrology/test_uncertainty.py``) at a small part of the cost.
+        budget (``tests/metrology/test_uncertainty.py``) at about a third of the cost.
     """
 
     draws: int = 16
@@ -148,7 +148,8 @@ def noise_range_p95(
     m = len(noise)
     top = np.ceil(m * rng.uniform(size=draws) ** (1.0 / n)).astype(np.int64) - 1
     bottom = m - np.ceil(m * rng.uniform(size=draws) ** (1.0 / n)).astype(np.int64)
-    ranges = noise[np.clip(top, 0, m - 1)] - noise[np.clip(bottom, 0, m - 1)]
+    # (independent extremes can cross for a tiny n: a range is never negative)
+    ranges = np.maximum(noise[np.clip(top, 0, m - 1)] - noise[np.clip(bottom, 0, m - 1)], 0.0)
     return float(np.quantile(ranges, 0.95))
 
 
@@ -222,6 +223,8 @@ def measurement_uncertainties(
         indices={f.spec.name: f.inlier_indices for f in ok},
         fits={f.spec.name: f.fit for f in report.features},
     )
+    if not feats.indices:  # no feature a measurement uses was fitted: no value to qualify
+        return [None] * len(report.measurements)
     cloud = report.points_base
     base_points = {name: cloud[idx] for name, idx in feats.indices.items()}
     budget: list[list[Contribution]] = [[] for _ in report.measurements]
@@ -321,10 +324,14 @@ def measurement_uncertainties(
         cluster = np.asarray(idx if geometry is None else geometry.frame_index[idx])
         # A fit's residuals are smaller than the errors that made them: the fit absorbed p of
         # the G clusters' worth of freedom. Residuals scaled by sqrt(G / (G - p)) restore the
-        # errors' size (the CR1 correction of the cluster bootstrap); for a sphere seen by 25
-        # stops that is 9 %, which the spheres' spacing showed missing on the modern cell.
+        # errors' size (a cluster-level degrees-of-freedom correction); for a sphere seen by
+        # 25 stops that is 9 %. Seen from p stops or fewer, nothing is left to resample.
         n_groups = len(np.unique(cluster))
-        inflate = math.sqrt(n_groups / max(n_groups - _DEGREES.get(type(feats.fits[name]), 0), 1))
+        degrees = _DEGREES.get(type(feats.fits[name]), 0)
+        if n_groups <= degrees:
+            missing.append(f"stripe noise of {name} (seen from {n_groups} stops only)")
+            continue
+        inflate = math.sqrt(n_groups / (n_groups - degrees))
         flips[name] = (rn[0][:, None] * rn[1], cluster, base_points[name], inflate)
 
     def noise_draw() -> dict[str, NDArray]:
@@ -368,7 +375,10 @@ def measurement_uncertainties(
     if flips:
         clusters = "stops" if geometry is not None else "points (stops not known)"
         boot = spread(noise_draw, linear_all)
-        method = f"wild bootstrap of the residuals, {config.draws} draws, clustered by {clusters}"
+        method = (
+            f"wild bootstrap of the residuals scaled by sqrt(G / (G - p)), {config.draws} draws, "
+            f"clustered by {clusters}"
+        )
         if robot_dev is None:
             add("stripe noise and fit", method, boot)
         else:
@@ -377,14 +387,15 @@ def measurement_uncertainties(
             # the calibration knows: the errors of a stop are never taken as smaller than that
             # (on the modern cell this floor took the spacing's coverage from 89 % to 93 %).
             robot = np.sqrt(np.nanmean(robot_dev**2, axis=0))
-            total = np.fmax(np.sqrt(np.nanmean(boot**2, axis=0)), robot)
-            rest = np.sqrt(np.maximum(total**2 - robot**2, 0.0))
+            known = np.where(np.isfinite(robot), robot, 0.0)  # a failed robot share: no floor
+            total = np.fmax(np.sqrt(np.nanmean(boot**2, axis=0)), known)
+            rest = np.sqrt(np.maximum(total**2 - known**2, 0.0))
             add(
                 "robot repeatability", robot_method, np.where(np.isfinite(robot_dev), robot, np.nan)
             )
             add(
                 "stripe noise and fit",
-                f"{method}, less the robot's share",
+                f"{method}, less the robot's share (the errors of a stop at least the robot's)",
                 np.where(np.isfinite(boot), rest, np.nan),
             )
     elif robot_dev is not None:

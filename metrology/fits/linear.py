@@ -73,6 +73,9 @@ class LinearisedFit:
 
         Its parameters, residuals, RMS and range follow; the minimum zone, when the fit has
         one, moves with the range (a minimum-zone solve would cost more than all the rest).
+        The parameters' covariance, standard deviations and inlier mask are the original
+        fit's, and the unit vectors keep their sign (no re-orientation: a signed distance
+        stays on the same side).
         """
         if points.shape != self.points.shape:
             raise ValueError(f"points: expected shape {self.points.shape}, got {points.shape}")
@@ -107,9 +110,13 @@ class LinearisedFit:
             }
         else:  # CylinderFit
             centre, e1, e2 = self.frame
+            axis = _unit(fit.axis + dtheta[2] * e1 + dtheta[3] * e2)
+            point = centre + dtheta[0] * e1 + dtheta[1] * e2
+            # the axis point nearest the points' centroid, as a fit gives it
+            middle = self.points.mean(axis=0) if points is None else points.mean(axis=0)
             params = {
-                "point_mm": centre + dtheta[0] * e1 + dtheta[1] * e2,
-                "axis": _unit(fit.axis + dtheta[2] * e1 + dtheta[3] * e2),
+                "point_mm": point + ((middle - point) @ axis) * axis,
+                "axis": axis,
                 "radius_mm": fit.radius_mm + dtheta[4],
             }
         spread = float(residuals.max() - residuals.min())
