@@ -119,6 +119,7 @@ def noise_range_p95(
     scale_mm: tuple[float, float] = (1.0, 3.0),
     draws: int = 2000,
     max_points: int = 8000,
+    max_pairs: int = 100_000,
 ) -> float | None:
     """The 95th percentile of the range of ``len(residuals)`` samples of the noise alone.
 
@@ -138,6 +139,8 @@ def noise_range_p95(
     sub = rng.choice(n, min(n, max_points), replace=False)
     near = points[sub]
     pairs = cKDTree(near).query_pairs(scale_mm[1], output_type="ndarray")
+    if len(pairs) > max_pairs:  # a dense patch: plenty of noise samples from fewer pairs
+        pairs = pairs[rng.integers(0, len(pairs), max_pairs)]
     if len(pairs):
         step = near[pairs[:, 0]] - near[pairs[:, 1]]
         pairs = pairs[np.einsum("ij,ij->i", step, step) >= scale_mm[0] ** 2]
@@ -156,20 +159,23 @@ def noise_range_p95(
 def _values(
     report: MeasurementReport,
     features: _Features,
-    moves: dict[str, NDArray],
+    moves: dict[str, NDArray | Fit],
     linear: dict[str, LinearisedFit | None] | None = None,
 ) -> NDArray:
     """Every measurement's value with its features fitted again to moved points.
 
     ``moves`` holds, by feature name, its points moved ``(M, 3)``, or, for a feature with a
-    linearisation in ``linear``, the changes of its residuals along the normals ``(M,)``. A
-    feature with a linearisation (made at the same points, unmoved) is updated to first order
-    instead of refitted. A minimum-zone form is not solved again: its
+    linearisation in ``linear``, the changes of its residuals along the normals ``(M,)``, or
+    the feature's fit already updated. A feature with a linearisation (made at the same
+    points, unmoved) is updated to first order instead of refitted. A minimum-zone form is not solved again: its
     change is taken as the change of the least-squares range (the linear programme would cost
     more than all the rest).
     """
     fits = dict(features.fits)
     for name, pts in moves.items():
+        if isinstance(pts, Fit):
+            fits[name] = pts
+            continue
         lin = None if linear is None else linear.get(name)
         if lin is not None:
             fits[name] = lin.shifted(pts) if pts.ndim == 1 else lin.moved(pts)
@@ -250,7 +256,7 @@ def measurement_uncertainties(
                 own_missing[i].append(f"{source} ({len(d) - ok.sum()} of {len(d)} refits failed)")
 
     def spread(
-        draw: Callable[[], dict[str, NDArray]], linear: dict[str, LinearisedFit | None] | None
+        draw: Callable[[], dict[str, NDArray | Fit]], linear: dict[str, LinearisedFit | None] | None
     ) -> NDArray:
         """Sample deviations (draws, measurements), scaled so that their RMS is the std."""
         vals = np.array([_values(report, feats, draw(), linear) for _ in range(config.draws)])
@@ -334,17 +340,22 @@ def measurement_uncertainties(
         inflate = math.sqrt(n_groups / (n_groups - degrees))
         flips[name] = (rn[0][:, None] * rn[1], cluster, base_points[name], inflate)
 
-    def noise_draw() -> dict[str, NDArray]:
-        out = dict(base_points)
+    # a linearised feature's response to whole stops flipping, in sums over its stops
+    grouped = {
+        name: lin.groups(flips[name][1])
+        for name, lin in (linear_all or {}).items()
+        if lin is not None and name in flips
+    }
+
+    def noise_draw() -> dict[str, NDArray | Fit]:
+        out: dict[str, NDArray | Fit] = dict(base_points)
         sign = rng.choice([-1.0, 1.0], size=n_clusters)
         for name, (offset, cluster, pts, inflate) in flips.items():
             # each residual r becomes s c r: the points move by (s c - 1) r along the normal
-            move = sign[cluster] * inflate - 1.0
-            lin = None if linear_all is None else linear_all.get(name)
-            if lin is not None:  # the residual's change along the normal is all it needs
-                out[name] = move * lin.residuals
+            if name in grouped:
+                out[name] = grouped[name].flipped(sign, inflate)
             else:
-                out[name] = pts + move[:, None] * offset
+                out[name] = pts + (sign[cluster] * inflate - 1.0)[:, None] * offset
         return out
 
     robot_dev = None

@@ -17,6 +17,7 @@ Plane, sphere and cylinder are linearised; other kinds return None (refit them).
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,7 +25,7 @@ from numpy.typing import NDArray
 
 from metrology.fits.results import CylinderFit, Fit, PlaneFit, SphereFit
 
-__all__ = ["LinearisedFit", "linearise"]
+__all__ = ["GroupFlips", "LinearisedFit", "linearise"]
 
 
 def _basis(unit: NDArray) -> tuple[NDArray, NDArray]:
@@ -68,6 +69,11 @@ class LinearisedFit:
     solve: NDArray
     frame: tuple[NDArray, ...]
 
+    @functools.cached_property
+    def centroid(self) -> NDArray:
+        """The unmoved points' mean, ``(3,)``."""
+        return self.points.mean(axis=0)
+
     def moved(self, points: NDArray) -> Fit:
         """The fit to ``points`` (the same points, moved a little: ``(M, 3)``), to first order.
 
@@ -88,6 +94,57 @@ class LinearisedFit:
             raise ValueError(f"dr: expected shape {self.residuals.shape}, got {dr.shape}")
         dtheta = self.solve @ dr
         residuals = self.residuals + dr + self.jacobian @ dtheta
+        centroid = self.centroid if points is None else points.mean(axis=0)
+        if points is None and isinstance(self.fit, PlaneFit):
+            centroid = centroid + self.fit.normal * float(dr.mean())  # one normal for all
+        return self._updated(
+            dtheta,
+            centroid,
+            float(residuals.max() - residuals.min()),
+            float(np.sqrt(residuals @ residuals / len(residuals))),
+            residuals,
+        )
+
+    def groups(self, group: NDArray) -> GroupFlips:
+        """The response to the residuals of whole groups (``group`` ``(M,)`` ints: a point's
+        robot stop) changing sign together, prepared once for many draws."""
+        if group.shape != self.residuals.shape:
+            raise ValueError(f"group: expected shape {self.residuals.shape}, got {group.shape}")
+        ids, inverse = np.unique(group, return_inverse=True)
+        k = len(ids)
+        r = self.residuals
+
+        def per_group(values: NDArray) -> NDArray:
+            """Sums over each group of ``values`` ``(M,)`` or ``(M, P)``."""
+            if values.ndim == 1:
+                return np.bincount(inverse, values, minlength=k)
+            return np.stack([per_group(v) for v in values.T], axis=1)
+
+        order = np.lexsort((r, inverse))  # by group, then by residual
+        first = np.searchsorted(inverse[order], np.arange(k))
+        last = np.append(first[1:], len(r)) - 1
+        return GroupFlips(
+            self,
+            ids,
+            per_group(self.solve.T * r[:, None]).T,
+            self.solve @ r,
+            per_group(self.jacobian * r[:, None]),
+            float(r @ r),
+            self.jacobian.T @ self.jacobian,
+            per_group(r),
+            order[last],
+            order[first],
+        )
+
+    def _updated(
+        self,
+        dtheta: NDArray,
+        centroid: NDArray,
+        spread: float,
+        rms: float,
+        residuals: NDArray | None,
+    ) -> Fit:
+        """The fit with its parameters moved by ``dtheta`` and the new residuals' figures."""
         fit = self.fit
         if isinstance(fit, SphereFit):
             params: dict = {
@@ -101,25 +158,18 @@ class LinearisedFit:
             params = {
                 "normal": normal,
                 "d_mm": offset - float(normal @ centre),
-                # the points' mean moves with them (the normal is the same at every point)
-                "centroid_mm": (
-                    self.points.mean(axis=0) + fit.normal * float(dr.mean())
-                    if points is None
-                    else points.mean(axis=0)
-                ),
+                "centroid_mm": centroid,
             }
         else:  # CylinderFit
             centre, e1, e2 = self.frame
             axis = _unit(fit.axis + dtheta[2] * e1 + dtheta[3] * e2)
             point = centre + dtheta[0] * e1 + dtheta[1] * e2
             # the axis point nearest the points' centroid, as a fit gives it
-            middle = self.points.mean(axis=0) if points is None else points.mean(axis=0)
             params = {
-                "point_mm": point + ((middle - point) @ axis) * axis,
+                "point_mm": point + ((centroid - point) @ axis) * axis,
                 "axis": axis,
                 "radius_mm": fit.radius_mm + dtheta[4],
             }
-        spread = float(residuals.max() - residuals.min())
         if fit.min_zone_mm is not None:
             params["min_zone_mm"] = (
                 fit.min_zone_mm + spread - (float(self.residuals.max() - self.residuals.min()))
@@ -127,9 +177,65 @@ class LinearisedFit:
         return dataclasses.replace(
             fit,
             **params,
-            residuals_mm=residuals,
-            rms_mm=float(np.sqrt(residuals @ residuals / len(residuals))),
+            residuals_mm=np.zeros(0) if residuals is None else residuals,  # none: not formed
+            rms_mm=rms,
             range_mm=spread,
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class GroupFlips:
+    """A linearised fit's response to whole groups of residuals flipping sign (the wild
+    bootstrap clustered by robot stop), in sums over the groups: a draw costs O(groups), not
+    O(points), whatever the feature's size.
+
+    With the residuals ``r`` scaled by ``c`` and group ``g``'s sign ``s_g``, the moves along the
+    normals are ``dr = (c s_g - 1) r`` and, exactly to first order,
+
+        dtheta = c A s - b,          A[:, g] = sum_(i in g) solve[:, i] r_i,  b = solve r,
+        sum r'^2 = c^2 r.r + 2 c (s C) . dtheta + dtheta' J'J dtheta,   C[g] = sum r_i J_i.
+
+    The range is taken over each group's largest and smallest residual (where a flipped
+    group's extremes are): exact but for the smooth ``J dtheta`` (micrometres) moving another
+    point of a group past its extreme.
+    """
+
+    linear: LinearisedFit
+    ids: NDArray
+    a: NDArray
+    b: NDArray
+    c: NDArray
+    rr: float
+    jtj: NDArray
+    sums: NDArray
+    top: NDArray
+    bottom: NDArray
+
+    def flipped(self, sign: NDArray, scale: float = 1.0) -> Fit:
+        """The fit after each group's residuals became ``scale * sign[group] * r``.
+
+        ``sign`` is indexed by the group ids given to :meth:`LinearisedFit.groups` (``+-1``).
+        """
+        lin = self.linear
+        s = sign[self.ids]
+        dtheta = scale * (self.a @ s) - self.b
+        m = len(lin.residuals)
+        sumsq = (
+            scale**2 * self.rr + 2.0 * scale * (s @ self.c) @ dtheta + dtheta @ self.jtj @ dtheta
+        )
+        ends = np.concatenate([self.top, self.bottom])
+        s_ends = np.concatenate([s, s])
+        at_ends = scale * s_ends * lin.residuals[ends] + lin.jacobian[ends] @ dtheta
+        centroid = lin.centroid
+        if isinstance(lin.fit, PlaneFit):
+            mean_dr = (scale * (s @ self.sums) - self.sums.sum()) / m
+            centroid = centroid + lin.fit.normal * mean_dr
+        return lin._updated(
+            dtheta,
+            centroid,
+            float(at_ends.max() - at_ends.min()),
+            float(np.sqrt(max(sumsq, 0.0) / m)),
+            None,
         )
 
 

@@ -118,3 +118,23 @@ def test_kinds_without_a_linearisation_and_wrong_shapes_are_refused():
     lin = linearise(fit_sphere(points), points)
     with pytest.raises(ValueError, match=r"expected shape \(500, 3\), got \(499, 3\)"):
         lin.moved(points[:-1])
+
+
+@pytest.mark.parametrize("kind", sorted(CASES))
+def test_group_flips_give_what_the_moved_residuals_give(kind):
+    make, fit, fields = CASES[kind]
+    rng = np.random.default_rng(11)
+    points = make(rng)
+    lin = linearise(fit(points), points)
+    group = rng.integers(5, 45, len(points))  # 40 stops, ids not from 0
+    flips = lin.groups(group)
+    for scale in (1.0, 1.1):
+        sign = rng.choice([-1.0, 1.0], 60)
+        exact = lin.shifted((scale * sign[group] - 1.0) * lin.residuals)
+        fast = flips.flipped(sign, scale)
+        for name in (*fields, "rms_mm", "range_mm"):
+            assert np.allclose(getattr(fast, name), getattr(exact, name), rtol=1e-9, atol=1e-9), (
+                name
+            )
+        if kind == "plane":
+            assert np.allclose(fast.centroid_mm, exact.centroid_mm, rtol=0, atol=1e-9)
