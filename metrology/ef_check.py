@@ -5,7 +5,9 @@ where the stripe meets the largest ring: in the image, the stripe's sub-pixel ce
 against the ring's conic (both after undistortion, where the stripe on the flat target is a
 straight line and the ring's image an exact conic). E and F are triangulated through the light
 plane and moved into the base frame with the robot pose; ``|EF|`` is compared with the nominal
-diameter (the paper's Table III).
+diameter (the paper's Table III). Stripe centres on a printed diameter line are left out of the
+line (the ink pulls them sideways); a view whose stripe runs along such a line, with too few
+centres beside it, is refused with that reason.
 
 ``|EF|`` is invariant to the rigid transform ``base_from_cam``, so it tests intrinsics and the
 light plane but not the hand-eye. The check therefore also reports the spread of O's base-frame
@@ -256,6 +258,45 @@ def _robust_line(points: NDArray, rng: np.random.Generator) -> tuple[NDArray, ND
     return line, mask
 
 
+def _on_ink(
+    uv: NDArray,
+    width_px: NDArray,
+    orientation: str,
+    camera: CameraModel,
+    pose: Any,
+    target: ConcentricCirclesTarget,
+) -> NDArray:
+    """Which stripe centres ``uv`` ``(N, 2)`` have a printed diameter line under their stripe.
+
+    Ink under a stripe pulls its centre towards the paper beside it when the ink's edge runs
+    along the stripe. A stripe through O crosses every ring at right angles, so the rings'
+    edges run across it and leave its centre in place; a diameter line the stripe meets at a
+    small angle runs along it over a long stretch (a view whose stripe lies on the printed
+    A-O-B line measured |EF| 0.38 mm short). Each centre and the end of its stripe's width
+    (``width_px`` along the scan line of the ``orientation``) are taken onto the target plane
+    with ``pose``; a centre is on ink when a diameter line (``line_width_mm`` wide) comes within
+    that half-width of it inside the largest ring.
+    """
+    if len(uv) == 0:
+        return np.zeros(0, bool)
+    cam_from_target = pose.cam_from_target
+    rot, t = cam_from_target[:3, :3], cam_from_target[:3, 3]
+    normal = rot[:, 2]
+
+    def on_target(pixels: NDArray) -> NDArray:
+        rays = camera.rays(pixels)
+        depth = (normal @ t) / (rays @ normal)
+        return (rays * depth[:, None] - t) @ rot  # target frame, z = 0
+
+    step = np.array([1.0, 0.0]) if orientation == "rows" else np.array([0.0, 1.0])
+    centre = on_target(uv)[:, :2]
+    reach = np.linalg.norm(on_target(uv + step)[:, :2] - centre, axis=1) * 0.5 * width_px
+    half = 0.5 * target.line_width_mm + reach
+    radius = np.hypot(centre[:, 0], centre[:, 1])
+    near_axis = (np.abs(centre[:, 0]) < half) | (np.abs(centre[:, 1]) < half)
+    return near_axis & (radius <= target.radius_mm + half)
+
+
 def measure_ef(
     laser_image: NDArray,
     observation: Any,
@@ -312,6 +353,22 @@ def measure_ef(
     stripe_und = camera.undistort_pixels(prof.uv[clean]) if clean.any() else np.zeros((0, 2))
     xh = np.column_stack([stripe_und, np.ones(len(stripe_und))])
     inside = np.einsum("ij,jk,ik->i", xh, conic, xh) * inside_sign > 0
+    pose = estimate_pose(observation.points_px, observation.points_target, camera)
+    if pose:
+        # A stripe centre on a printed diameter line is pulled towards the paper beside it:
+        # keep only the points whose stripe lies beside the lines.
+        on_ink = _on_ink(
+            prof.uv[clean], prof.width_px[clean], prof.orientation, camera, pose, target
+        )
+        paper = inside & ~on_ink
+        if paper.sum() < max(10, 0.25 * inside.sum()):
+            return EFMeasurement(
+                frame_id,
+                False,
+                f"the stripe runs along a printed diameter line: {int(paper.sum())} of "
+                f"{int(inside.sum())} stripe points inside the largest ring lie beside it",
+            )
+        inside = paper
     stripe_in = stripe_und[inside]
     fit = _robust_line(stripe_in, np.random.default_rng(frame_id))
     if fit is None:
@@ -343,7 +400,6 @@ def measure_ef(
     # stripe passed from O on the target (|EF| is a chord, 2 sqrt(R^2 - h^2), not 2R, when h > 0).
     o_base = None
     offset = math.nan
-    pose = estimate_pose(observation.points_px, observation.points_target, camera)
     if pose:
         base_from_target = base_from_cam @ pose.cam_from_target
         o_base = base_from_target[:3, 3].copy()

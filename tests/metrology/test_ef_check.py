@@ -37,6 +37,20 @@ def test_ef_with_the_true_calibration_measures_the_diameter(modern_check, tmp_pa
     assert result.o_spread_mm < 0.15
 
 
+def test_a_stripe_lying_on_a_printed_diameter_is_refused_not_measured(simulated_cells):
+    # Seed 7 draws a check view whose stripe runs along the printed A-O-B line: its centre,
+    # pulled by the ink, measured |EF| 0.38 mm short. That view is refused with its reason;
+    # the others keep their few-micrometre errors.
+    cell = simulated_cells("modern", sessions=("check",), seed=7)
+    result = run_ef_check(
+        read_session(cell / "check"), read_calibration(cell / "calibration_true.json")
+    )
+    refused = {m.id: m.reason for m in result.measurements if not m.ok}
+    assert list(refused) == [7]
+    assert "runs along a printed diameter line" in refused[7]
+    assert result.max_abs_error_mm < 0.03
+
+
 def test_ef_result_file_keeps_the_contract(modern_check, tmp_path):
     out = tmp_path / "ef.json"
     assert (
