@@ -283,38 +283,30 @@ def measurement_uncertainties(
     ends = np.cumsum([len(sample[n]) for n in names])[:-1]
     linear_sample = linearised({n: cloud[idx] for n, idx in sample.items()})
     reference = _values(report, feats, base_points, linear_all)
-    if geometry is not None and covariance is not None:
-        all_pixels = geometry.pixels(cloud, all_idx)
+    if geometry is None:
+        missing.append("calibration (the cloud's stops are not known)")
+    elif covariance is None:
+        missing.append("calibration (the calibration file has no covariance)")
+    else:
+        as_is, moves = geometry.calibration_moves(cloud, all_idx)  # one call for all features
 
-        def triangulated(delta: NDArray) -> dict[str, NDArray]:
-            cal = geometry.calibration.corrected(delta)
-            pts = geometry.retriangulated(cal, all_pixels, all_idx)  # one call for all
-            return dict(zip(names, np.split(pts, ends), strict=True))
+        def triangulated(move: NDArray) -> dict[str, NDArray]:
+            return dict(zip(names, np.split(as_is + move, ends), strict=True))
 
-        zero = _values(
-            report, feats, triangulated(np.zeros(covariance.matrix.shape[0])), linear_sample
-        )
-        dirs = covariance.principal_directions()
+        zero = _values(report, feats, triangulated(np.zeros(3)), linear_sample)
         deltas = np.array(
-            [_values(report, feats, triangulated(s), linear_sample) - zero for s in dirs]
+            [_values(report, feats, triangulated(m), linear_sample) - zero for m in moves]
         )
-        if len(dirs):
+        if len(moves):
             # sum of squares over the directions: scale the RMS by sqrt(M)
             add(
                 "calibration",
-                f"linearised over {len(dirs)} principal directions of the calibration's covariance",
-                deltas * math.sqrt(len(dirs)),
+                f"linearised over {len(moves)} principal directions of the calibration's "
+                "covariance",
+                deltas * math.sqrt(len(moves)),
             )
-    if (
-        geometry is not None
-        and covariance is not None
-        and not len(covariance.principal_directions())
-    ):
-        missing.append("calibration (its covariance is zero)")
-    elif geometry is not None and covariance is None:
-        missing.append("calibration (the calibration file has no covariance)")
-    elif geometry is None:
-        missing.append("calibration (the cloud's stops are not known)")
+        else:
+            missing.append("calibration (its covariance is zero)")
 
     # Errors of one stop (the robot's miss, the exposure's noise and speckle along the
     # profile) show in the fits' residuals: a wild bootstrap that flips the sign of all
@@ -536,27 +528,22 @@ def deviation_calibration_share(
     covariance = geometry.calibration.covariance
     if covariance is None:
         return None, "calibration (the calibration file has no covariance)"
-    dirs = covariance.principal_directions()
-    if not len(dirs):
-        return None, "calibration (its covariance is zero)"
     which = np.asarray(which)
     if len(which) > max_points:
         which = np.sort(np.random.default_rng(seed).choice(which, max_points, replace=False))
     if len(which) < 10:
         return None, f"calibration (only {len(which)} points to evaluate)"
+    _, moves = geometry.calibration_moves(points_cloud, which)
+    if not len(moves):
+        return None, "calibration (its covariance is zero)"
     p = points_cloud[which]
     n = normals_cloud[which]
     # the alignment's first-order response: a small rotation w and shift t about the centre
     # move a deviation by n . (w x (p - c) + t)
     rigid = np.hstack([np.cross(p - p.mean(axis=0), n), n])
-    pixels = geometry.pixels(points_cloud, which)
-    zero = geometry.retriangulated(
-        geometry.calibration.corrected(np.zeros(covariance.matrix.shape[0])), pixels, which
-    )
     total = np.zeros(len(which))
-    for direction in dirs:
-        moved = geometry.retriangulated(geometry.calibration.corrected(direction), pixels, which)
-        change = np.einsum("ij,ij->i", n, moved - zero)
+    for move in moves:
+        change = np.einsum("ij,ij->i", n, move)
         taken, *_ = np.linalg.lstsq(rigid, change, rcond=None)
         total += (change - rigid @ taken) ** 2
     return float(np.quantile(np.sqrt(total), 0.95)), ""

@@ -121,6 +121,27 @@ class ScanGeometry:
         tri = Triangulator(calibration, grid_step_px=0)
         return tri.points_base(pixels, self.frame_index[which], self.base_from_flange)
 
+    def calibration_moves(self, points_base: NDArray, which: NDArray) -> tuple[NDArray, NDArray]:
+        """How the calibration's uncertainty moves the points ``points_base[which]``.
+
+        Returns
+        -------
+        points : ndarray, shape (M, 3)
+            The points re-triangulated from their pixels with the calibration as it is.
+        moves : ndarray, shape (D, M, 3)
+            Their change under each of the ``D`` one-sigma principal directions of the
+            calibration's covariance (``D = 0`` without a covariance, or for a zero one).
+        """
+        cal, cov = self.calibration, self.calibration.covariance
+        pixels = self.pixels(points_base, which)
+        as_is = cal if cov is None else cal.corrected(np.zeros(cov.matrix.shape[0]))
+        points = self.retriangulated(as_is, pixels, which)
+        dirs = np.zeros((0, 0)) if cov is None else cov.principal_directions()
+        moves = np.zeros((len(dirs), len(points), 3))
+        for k, direction in enumerate(dirs):
+            moves[k] = self.retriangulated(cal.corrected(direction), pixels, which) - points
+        return points, moves
+
     def pose_moved(
         self,
         points_base: NDArray,

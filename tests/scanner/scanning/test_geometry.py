@@ -3,13 +3,14 @@ would have given."""
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
 
 import numpy as np
 import pytest
 
 from scanner.app import stages
-from scanner.formats.calibration_covariance import PARAMETERS
+from scanner.formats.calibration_covariance import PARAMETERS, CalibrationCovariance
 from scanner.formats.calibration_file import write_calibration
 from scanner.formats.clouds import read_cloud
 from scanner.scanning.geometry import ScanGeometry, scan_geometry_of, sweep_numbering
@@ -46,6 +47,35 @@ def test_another_calibration_moves_the_points_as_triangulating_with_it_does():
     )
     np.testing.assert_allclose(moved, direct, atol=1e-6)
     assert np.abs(moved - points).max() > 0.05
+
+
+def test_the_calibrations_moves_are_its_principal_directions_triangulated():
+    sweep = ball_sweep(stops=30)
+    points = sweep.points()
+    which = np.arange(0, len(points), 5)
+    # no covariance: the points as they are, no moves
+    as_is, moves = sweep.geometry().calibration_moves(points, which)
+    np.testing.assert_allclose(as_is, points[which], atol=1e-9)
+    assert moves.shape == (0, len(which), 3)
+    # a plane offset of 0.1 mm and fx of 2 px (1 sigma, independent): two directions
+    sigma = np.zeros(len(PARAMETERS))
+    sigma[PARAMETERS.index("plane_d")] = 0.1
+    sigma[PARAMETERS.index("fx")] = 2.0
+    cal = dataclasses.replace(
+        sweep.calibration, covariance=CalibrationCovariance(np.diag(sigma**2))
+    )
+    geo = ScanGeometry(cal, sweep.base_from_flange, sweep.frame_index)
+    as_is, moves = geo.calibration_moves(points, which)
+    np.testing.assert_allclose(as_is, points[which], atol=1e-6)
+    assert moves.shape == (2, len(which), 3)
+    pixels = geo.pixels(points, which)
+    for delta in (
+        sigma * (np.arange(len(PARAMETERS)) == PARAMETERS.index(k)) for k in ("plane_d", "fx")
+    ):
+        moved = geo.retriangulated(cal.corrected(delta), pixels, which) - as_is
+        # the direction's sign is free
+        assert min(np.abs(m - s * moved).max() for m in moves for s in (1, -1)) < 1e-6
+        assert np.abs(moved).max() > 0.01
 
 
 def test_a_stop_missed_by_a_translation_moves_its_points_by_it_in_the_base():
