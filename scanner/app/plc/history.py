@@ -57,9 +57,10 @@ CREATE TABLE IF NOT EXISTS jobs (
 );
 """
 
-#: Columns added after the first release, with their definitions: a history written before
-#: them gains them when opened for writing, and reads as their default when opened read-only.
-_LATER_COLUMNS = {"not_proven": "INTEGER NOT NULL DEFAULT 0"}
+#: Columns added after the first release, with their type and default: a history written
+#: before them gains them when opened for writing, and reads as their default when opened
+#: read-only.
+_LATER_COLUMNS = {"not_proven": ("INTEGER", "0")}
 
 _COLUMNS = (
     "id, command, command_name, sequence, parameter, state, started_at, finished_at, passed, "
@@ -67,7 +68,6 @@ _COLUMNS = (
     "artefacts"
 )
 _COLUMN_NAMES = frozenset(c.strip() for c in _COLUMNS.split(","))
-_LATER_DEFAULTS = {"not_proven": "0"}
 
 
 def _now() -> str:
@@ -141,8 +141,8 @@ class JobHistory:
         self._select = ", ".join(
             [_COLUMNS]
             + [
-                name if name in present else f"{_LATER_DEFAULTS[name]} AS {name}"
-                for name in _LATER_COLUMNS
+                name if name in present else f"{default} AS {name}"
+                for name, (_, default) in _LATER_COLUMNS.items()
             ]
         )
 
@@ -187,9 +187,11 @@ class JobHistory:
             db.execute("PRAGMA busy_timeout=5000")
             db.executescript(_SCHEMA)
             present = {r[1] for r in db.execute("PRAGMA table_info(jobs)")}
-            for name, definition in _LATER_COLUMNS.items():
+            for name, (kind, default) in _LATER_COLUMNS.items():
                 if name not in present:
-                    db.execute(f"ALTER TABLE jobs ADD COLUMN {name} {definition}")
+                    db.execute(
+                        f"ALTER TABLE jobs ADD COLUMN {name} {kind} NOT NULL DEFAULT {default}"
+                    )
         except sqlite3.Error as exc:
             db.close()
             raise InputError(path, f"cannot open the job history for writing ({exc})") from None
