@@ -8,7 +8,11 @@ Each seed is an independent job on the virtual cell: a new calibration session, 
 calibration (with the covariance the file now carries), a new sweep of the same scene, the
 scan, the measurement with ``configs/plans/modern_sweep.toml`` and the EF check. With
 ``--randomised`` each seed also draws another sensor (camera, lens, laser geometry, hand-eye,
-robot repeatability, noise: :func:`scanner.virtual_cell.random_cell.randomised_cell`).
+robot repeatability, noise: :func:`scanner.virtual_cell.random_cell.randomised_cell`), and that
+sensor gets its own acceptance test first, as a user's would: an independent sweep of the same
+scene, scanned with the sensor's true calibration and judged by ``scanner acceptance``
+(``configs/plans/acceptance_modern.toml``); its PS and SD become the plan's ``instrument``
+figures for that seed (the modern plan's are the modern sensor's own).
 
 For each characteristic (sphere spacing, both sphere diameters, the plate's flatness, every EF
 length) the true error is the measured value minus the cell's exact geometry (the plate is
@@ -23,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import platform
+import re
 import shutil
 import subprocess
 import sys
@@ -37,11 +42,48 @@ from scanner.app import stages
 from scanner.core.config import resolve_config
 from scanner.scanning.geometry import scan_geometry_of
 from scanner.virtual_cell import load_cell
+from scanner.virtual_cell.cell import CellConfig
 from scanner.virtual_cell.random_cell import randomised_cell
 
 #: The plan's characteristics whose truth is the cell's geometry (plan nominal; flatness 0).
 CHARACTERISTICS = ("sphere spacing", "sphere_1 diameter", "sphere_2 diameter", "plate flatness")
 PLAN = "modern_sweep"
+ACCEPTANCE = "acceptance_modern"
+
+
+def sensor_acceptance(cell: CellConfig, seed: int, folder: Path) -> dict[str, float]:
+    """The randomised sensor's own PS and SD (mm): its acceptance test on an independent sweep.
+
+    The sweep is rendered with another seed than the job's (its noise is not the job's), scanned
+    with the sensor's true calibration, and judged against ``ACCEPTANCE``. Cached in
+    ``folder/acceptance.json``.
+    """
+    cached = folder / "acceptance.json"
+    if cached.is_file():
+        return json.loads(cached.read_text())
+    sim = folder / "acceptance"
+    stages.simulate(cell, sim, seed=20_000 + seed, sessions=("sweep",), workers=2)
+    stages.scan([sim / "sweep"], sim / "calibration_true.json", sim / "cloud.ply")
+    judged = stages.acceptance(sim / "cloud.ply", ACCEPTANCE, sim / "acceptance.json")
+    figures = {sym: judged.result.worst(sym) for sym in ("PS", "SD")}
+    shutil.rmtree(sim / "sweep", ignore_errors=True)
+    cached.write_text(json.dumps(figures, indent=1))
+    return figures
+
+
+def plan_for(figures: dict[str, float], folder: Path) -> Path:
+    """The shipped plan with its ``instrument`` line set to a sensor's PS and SD."""
+    text = resolve_config(PLAN, "plans").read_text()
+    line = (
+        f"instrument = {{ probing_size_mm = {abs(figures['PS']):.4f}, "
+        f"sphere_spacing_mm = {abs(figures['SD']):.4f} }}"
+    )
+    text, n = re.subn(r"(?m)^instrument = .*$", line, text)
+    if n != 1:
+        raise ValueError(f"{PLAN}: expected one instrument line, got {n}")
+    path = folder / "plan.toml"
+    path.write_text(text)
+    return path
 
 
 def run_seed(seed: int, randomised: bool, work: Path, again: bool = False) -> dict:
@@ -58,11 +100,11 @@ def run_seed(seed: int, randomised: bool, work: Path, again: bool = False) -> di
     sim = folder / "sim"
     again = again and (folder / "cloud.ply").is_file() and (sim / "check").is_dir()
     seconds = json.loads(cached.read_text())["seconds"] if again and cached.is_file() else {}
+    cell = load_cell("modern")
+    if randomised:
+        cell = randomised_cell(cell, np.random.default_rng(10_000 + seed))
     if not again:
         folder.mkdir(parents=True, exist_ok=True)
-        cell = load_cell("modern")
-        if randomised:
-            cell = randomised_cell(cell, np.random.default_rng(10_000 + seed))
         t0 = time.perf_counter()
         stages.simulate(cell, sim, seed=seed, workers=2)
         t1 = time.perf_counter()
@@ -72,11 +114,13 @@ def run_seed(seed: int, randomised: bool, work: Path, again: bool = False) -> di
         t3 = time.perf_counter()
         shutil.rmtree(sim / "calibration", ignore_errors=True)  # the sweep and check stay
         seconds = {"simulate": t1 - t0, "calibrate": t2 - t1, "scan": t3 - t2}
+    figures = sensor_acceptance(cell, seed, folder) if randomised else None
+    plan = plan_for(figures, folder) if figures else resolve_config(PLAN, "plans")
     t3 = time.perf_counter()
-    judged = stages.measure(folder / "cloud.ply", PLAN, folder / "measure.json")
+    judged = stages.measure(folder / "cloud.ply", plan, folder / "measure.json")
     t4 = time.perf_counter()
     # the propagation's own time, for its share of the measurement's
-    report = measure_cloud(folder / "cloud.ply", resolve_config(PLAN, "plans"))
+    report = measure_cloud(folder / "cloud.ply", plan)
     t5 = time.perf_counter()  # the propagation: the cloud's stops read back, and the budgets
     geometry, _ = scan_geometry_of(folder / "cloud.ply")
     measurement_uncertainties(report, geometry)
@@ -101,12 +145,12 @@ def run_seed(seed: int, randomised: bool, work: Path, again: bool = False) -> di
     # the user's figure: the whole `scanner measure` command (start-up, reading, the reports)
     t7 = time.perf_counter()
     subprocess.run(
-        [sys.executable, "-m", "scanner", "measure", str(folder / "cloud.ply"), "--plan", PLAN,
+        [sys.executable, "-m", "scanner", "measure", str(folder / "cloud.ply"), "--plan", str(plan),
          "--out", str(folder / "command" / "measure.json")],
         check=True, capture_output=True,
     )  # fmt: skip
     seconds.update(measure=t4 - t3, uncertainty=t6 - t5, command=time.perf_counter() - t7)
-    result = {"seed": seed, "kind": kind, "rows": rows, "seconds": seconds}
+    result = {"seed": seed, "kind": kind, "rows": rows, "seconds": seconds, "instrument": figures}
     cached.write_text(json.dumps(result, indent=1))
     return result
 
