@@ -129,6 +129,63 @@ def detect_concentric(
     return refused  # type: ignore[return-value]
 
 
+def _coarse_pencil(
+    per_ring: list[list[tuple[float, NDArray]]], radii: NDArray, c: NDArray, min_rings: int
+) -> tuple[dict[int, NDArray], NDArray] | str:
+    """The rings' coarse conics from their ray crossings and the pencil's centre, or why not.
+
+    Each ring's conic is fitted to all its crossings and, should their pencil disagree with
+    the spec's radius ratios, to the crossings that remain when those far from the fit are
+    dropped; with either, conics whose labels are off by a ring are named by their sizes.
+    """
+    fitted = 0
+    for fit in (lambda p: fit_conic(p, geometric=False), _trimmed_conic):
+        conics: dict[int, NDArray] = {}
+        for k, pts in enumerate(per_ring):
+            if len(pts) < 8:
+                continue
+            spread = np.ptp(np.unwrap(np.sort(np.array([p[0] for p in pts]))))
+            if spread < np.pi / 2:
+                continue
+            conic = fit(np.array([p[1] for p in pts]))
+            if conic is not None and _ellipse_ok(conic, c):
+                conics[k] = conic
+        fitted = max(fitted, len(conics))
+        if len(conics) < min_rings:
+            continue
+        centre = _pencil_centre(conics, radii, c)
+        if centre is not None:
+            return conics, centre
+        # The rays' labels may be off by a ring: name the conics by their sizes instead.
+        renamed = _relabel_by_ratios(conics, radii)
+        if len(renamed) >= min_rings:
+            centre = _pencil_centre(renamed, radii, c)
+            if centre is not None:
+                return renamed, centre
+    if fitted < min_rings:
+        return f"no ring pencil found: {fitted} rings fitted, expected >= {min_rings}"
+    return (
+        "no ring pencil found: the ring conics are not images of the spec's concentric "
+        "circles (radius ratios disagree)"
+    )
+
+
+def _trimmed_conic(points: NDArray) -> NDArray | None:
+    """A ring's coarse conic from its ray crossings, points far from the fit dropped: a ray
+    that missed one crossing names the next ring's point as this one's."""
+    conic = fit_conic(points, geometric=False)
+    for _ in range(3):
+        dist = np.abs(sampson_distances(conic, points))
+        keep = dist < max(3.0 * 1.4826 * float(np.median(dist)), 1.0)
+        if keep.all():
+            break
+        points = points[keep]
+        if len(points) < 8:
+            return None
+        conic = fit_conic(points, geometric=False)
+    return conic
+
+
 def _detect_with_kernel(
     img: NDArray,
     target: ConcentricCirclesTarget,
@@ -146,7 +203,11 @@ def _detect_with_kernel(
     z = d / _threshold_map(d, bg, 4 * kernel)
     thr = 1.0
     mask = (z > thr).astype(np.uint8) * 255
-    lines = _hough_lines(mask, min_votes=int(0.08 * min(h, w)))
+    # Rays stop where the print is hidden (laser stripe, glare): see label_rays.
+    z_rays = np.where(_bright_mask(img, kernel) > 0, -1.0, z)
+    # Clutter's long lines can outvote a small target's diameters: a generous number of the
+    # strongest lines is tried (a crossing without rings around it costs little).
+    lines = _hough_lines(mask, min_votes=int(0.08 * min(h, w)), max_lines=16)
     if len(lines) < 2:
         return TargetObservation.failed("no pair of diameter lines found", size, KIND)
 
@@ -166,7 +227,11 @@ def _detect_with_kernel(
             if not (0 <= c[0] < w and 0 <= c[1] < h):
                 continue
             axis_angles = [t1 + np.pi / 2, t1 - np.pi / 2, t2 + np.pi / 2, t2 - np.pi / 2]
-            per_ring, good = _label_rays(z, c, radii, thr, axis_angles)
+            # a quarter of the rays first: most crossings of clutter lines stop here
+            _, quick = _label_rays(z_rays, c, radii, thr, axis_angles, n_rays=24)
+            if quick < 2 or (best is not None and 4 * quick < 0.5 * best[0]):
+                continue
+            per_ring, good = _label_rays(z_rays, c, radii, thr, axis_angles)
             if best is None or good > best[0]:
                 best = (good, c, per_ring, (l1, l2), axis_angles)
     if best is None or best[0] < 12:
@@ -174,40 +239,14 @@ def _detect_with_kernel(
             "no ring pencil found (no pair of lines with rings around their crossing)", size, KIND
         )
     _, c, per_ring, (l1, l2), axis_angles = best
+    # the chosen centre's rings from many more rays (the kernel makes them cheap)
+    per_ring, _ = _label_rays(z_rays, c, radii, thr, axis_angles, n_rays=384)
 
     # -- initial conics and the pencil centre
-    conics: dict[int, NDArray] = {}
-    for k, pts in enumerate(per_ring):
-        if len(pts) >= 8:
-            angs = np.array([p[0] for p in pts])
-            spread = np.ptp(np.unwrap(np.sort(angs)))
-            if spread < np.pi / 2:
-                continue
-            conic = fit_conic(np.array([p[1] for p in pts]), geometric=False)
-            if _ellipse_ok(conic, c):
-                conics[k] = conic
-    if len(conics) < s.min_rings:
-        return TargetObservation.failed(
-            f"no ring pencil found: {len(conics)} rings fitted, expected >= {s.min_rings}",
-            size,
-            KIND,
-        )
-    c_pencil = _pencil_centre(conics, radii, c)
-    if c_pencil is None:
-        # The rays' labels may be off by a ring: name the conics by their sizes instead.
-        renamed = _relabel_by_ratios(conics, radii)
-        if len(renamed) >= s.min_rings:
-            c_pencil = _pencil_centre(renamed, radii, c)
-            if c_pencil is not None:
-                conics = renamed
-    c = c_pencil
-    if c is None:
-        return TargetObservation.failed(
-            "no ring pencil found: the ring conics are not images of the spec's concentric "
-            "circles (radius ratios disagree)",
-            size,
-            KIND,
-        )
+    pencil = _coarse_pencil(per_ring, radii, c, s.min_rings)
+    if isinstance(pencil, str):
+        return TargetObservation.failed(pencil, size, KIND)
+    conics, c = pencil
 
     # -- line width in px estimate, for windows
     spacing_px = _min_spacing_px(conics, c)
@@ -275,7 +314,9 @@ def _detect_with_kernel(
             )
         c = c_new
         # Refine the diameter lines from the rings' geometry.
-        axis_res = _refine_axes(coef, axis_lines, c, conics, radii, half_window, (w, h), bright)
+        axis_res = _refine_axes(
+            coef, axis_lines, c, conics, radii, half_window, line_px, (w, h), bright
+        )
         if axis_res is None:
             return TargetObservation.failed(
                 "diameter lines not measurable between the rings", size, KIND
@@ -316,9 +357,8 @@ def _detect_with_kernel(
     line_dark = float(np.median(_sample(d, ring_pts[:, 0], ring_pts[:, 1])))
     paper = float(np.median(_sample(bg, ring_pts[:, 0], ring_pts[:, 1])))
     # Both diameters must be printed lines, not any two lines through the centre.
-    reach = float(np.max(np.linalg.norm(ring_pts - center, axis=1)))
-    for ln in axis_lines:
-        ev = _line_evidence(d, ln, center, reach, 2.0 * half_window + 2.0)
+    for ln, ends_ln in zip(axis_lines, ends, strict=True):
+        ev = _line_evidence(d, ln, center, ends_ln, 2.0 * half_window + 2.0)
         if ev < 0.3 * line_dark:
             return TargetObservation.failed(
                 f"diameter line not printed: darkness {ev:.2f} on it against "

@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calibration.detection.conics import intersect_lines
+from calibration.detection.ray_kernels import label_rays
 
 # --------------------------------------------------------------------------------------------
 # Image preparation
@@ -69,23 +70,39 @@ def _live_mask(d: NDArray, bg: NDArray) -> NDArray:
 def _bright_mask(img: NDArray, kernel_px: int) -> NDArray:
     """1 where the image is clearly brighter than the paper around it (laser stripe, glare).
 
-    The paper level is a median over a window wider than thin lines, bright or dark. Clearly
-    brighter: 12 % over it, and beyond 3.5 times this image's own noise (the robust spread of
-    the image about its paper level), so that sensor noise and paper grain are never taken
-    for glare.
+    The paper level is the image with thin lines taken out, dark ones and then bright ones
+    (a grey closing, then an opening, wider than a line): densely printed rings cover much
+    of any window, and a median over it would take their darkness for the paper's and the
+    paper between them for glare. Clearly brighter: 12 % over the paper (or clipped at the
+    image's top over paper that is nearly as bright), and beyond 3.5 times this image's own
+    noise (the robust spread of the image about its paper level), so that sensor noise and
+    paper grain are never taken for glare; with it, whatever around it is still 2 times the
+    noise over the paper (its glow).
     """
     k = max(int(kernel_px) * 2 + 1, 15) | 1
-    scale = 255.0 / max(float(img.max()), 1e-6)
-    u8 = np.clip(img * scale, 0, 255).astype(np.uint8)
-    paper = cv2.medianBlur(u8, min(k, 255)).astype(np.float64) / scale
-    above = img - paper
+    se = cv2.getStructuringElement(cv2.MORPH_RECT, (k, k))
+    # (lightly smoothed: the noise drops about threefold, a stripe keeps most of its height)
+    smooth = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 1.0)
+    paper = cv2.morphologyEx(cv2.morphologyEx(smooth, cv2.MORPH_CLOSE, se), cv2.MORPH_OPEN, se)
+    above = (smooth - paper).astype(np.float64)
+    paper = paper.astype(np.float64)
     step = max(1, int(np.sqrt(above.size / 200_000)))
     sub_above, sub_paper = above[::step, ::step], paper[::step, ::step]
     # The noise of the lit paper, not of dark surroundings (which would pull it to zero).
     lit = sub_paper > 0.5 * _lit_level(sub_paper)
     sample = sub_above[lit] if np.count_nonzero(lit) >= 100 else sub_above.ravel()
     noise = 1.4826 * float(np.median(np.abs(sample - np.median(sample))))
-    bright = above > np.maximum(paper * 0.12 + 0.02 * float(np.median(paper)), 3.5 * noise)
+    core = above > np.maximum(paper * 0.12 + 0.02 * float(np.median(paper)), 3.5 * noise)
+    # Over bright paper a stripe clips at the image's top before it is 12 % over the paper.
+    core |= (img >= 0.99 * float(img.max())) & (above > 3.5 * noise)
+    # ... and its glow (the beam's tails, the blur) reaches further: all that is still over
+    # the noise and connected to such a core is taken with it.
+    weak = (above > 2.0 * noise) | core
+    n, labels = cv2.connectedComponents(weak.astype(np.uint8), connectivity=8)
+    keep = np.zeros(n, dtype=bool)
+    keep[np.unique(labels[core])] = True
+    keep[0] = False
+    bright = keep[labels]
     bright = cv2.dilate(bright.astype(np.uint8), np.ones((3, 3), np.uint8))
     return bright.astype(np.float64)
 
@@ -215,44 +232,6 @@ def _sample(img: NDArray, u: NDArray, v: NDArray) -> NDArray:
     return np.where(inside, values, 0.0)
 
 
-def _ray_peaks(profile: NDArray, thr: float) -> list[int]:
-    """Indices of the maxima of the runs above ``thr`` of a 1-D profile."""
-    above = profile > thr
-    if not above.any():
-        return []
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], above.astype(np.int8), [0]])))
-    starts, ends = edges[::2], edges[1::2]
-    # A run touching the start is the centre's own crossing of the diameter lines.
-    return [int(s + np.argmax(profile[s:e])) for s, e in zip(starts, ends) if s > 0]
-
-
-def _projective_fit(r: NDArray, t: NDArray) -> tuple[float, float, float]:
-    """Fit ``t = a r / (1 + b r)``; returns a, b and the largest residual in pixels."""
-    A = np.column_stack([r, -r * t])
-    sol, *_ = np.linalg.lstsq(A, t, rcond=None)
-    a, b = float(sol[0]), float(sol[1])
-    denom = 1 + b * r
-    if np.any(denom <= 0.05) or a <= 0:
-        return a, b, np.inf
-    return a, b, float(np.max(np.abs(a * r / denom - t)))
-
-
-def _rays_from(
-    d: NDArray, c: NDArray, angles: NDArray, step: float = 1.0
-) -> tuple[NDArray, NDArray, NDArray]:
-    """Darkness profiles along rays from ``c``: (profiles (R, S), t (S,), valid (R, S))."""
-    h, w = d.shape
-    tmax = float(np.hypot(w, h))
-    t = np.arange(1.0, tmax, step)
-    du, dv = np.cos(angles), np.sin(angles)
-    u = c[0] + du[:, None] * t[None, :]
-    v = c[1] + dv[:, None] * t[None, :]
-    valid = (u >= 1) & (u <= w - 2) & (v >= 1) & (v <= h - 2)
-    prof = _sample(d, u.ravel(), v.ravel()).reshape(u.shape)
-    prof[~valid] = 0.0
-    return prof, t, valid
-
-
 def _label_rays(
     d: NDArray,
     c: NDArray,
@@ -263,7 +242,10 @@ def _label_rays(
 ) -> tuple[list[list[tuple[float, NDArray]]], int]:
     """Ring crossings labelled by the 1-D projectivity along rays from ``c``.
 
-    Returns per ring a list of (angle, point px) and the number of consistent rays.
+    Returns per ring a list of (angle, point px) and the support of ``c``: over the rays
+    whose crossings fit the projectivity, the crossings beyond the two that any fit of its
+    two parameters takes (three crossings fit nearly any point near a target; a centre whose
+    rays cross every ring in order is the target's).
     """
     angles = np.linspace(0, 2 * np.pi, n_rays, endpoint=False) + 0.013
     keep = np.ones(n_rays, bool)
@@ -271,20 +253,12 @@ def _label_rays(
         diff = np.abs((angles - a + np.pi) % (2 * np.pi) - np.pi)
         keep &= diff > np.radians(6)
     angles = angles[keep]
-    prof, t, _ = _rays_from(d, c, angles)
+    count, peaks, err = label_rays(d, c, angles, radii, thr)
+    last = peaks[np.arange(len(angles)), np.maximum(count - 1, 0)]
+    ok = (count >= 3) & (err <= 1.5 + 0.01 * np.nan_to_num(last))
     per_ring: list[list[tuple[float, NDArray]]] = [[] for _ in radii]
-    good = 0
-    for i, ang in enumerate(angles):
-        peaks = _ray_peaks(prof[i], thr)
-        m = min(len(peaks), len(radii))
-        if m < 3:
-            continue
-        tp = t[np.asarray(peaks[:m])]
-        _, _, err = _projective_fit(radii[:m], tp)
-        if err > 1.5 + 0.01 * tp[-1]:
-            continue
-        good += 1
-        dirv = np.array([np.cos(ang), np.sin(ang)])
-        for k in range(m):
-            per_ring[k].append((float(ang), c + tp[k] * dirv))
-    return per_ring, good
+    for i in np.flatnonzero(ok):
+        dirv = np.array([np.cos(angles[i]), np.sin(angles[i])])
+        for k in range(count[i]):
+            per_ring[k].append((float(angles[i]), c + peaks[i, k] * dirv))
+    return per_ring, int(np.sum(count[ok] - 2))

@@ -32,7 +32,12 @@ class ConcentricDetectorSettings:
     ray_step_px: float = 0.125
     """Sampling step of the sub-pixel profiles."""
     max_conic_rms_px: float = 0.6
-    """Rings whose refitted conic leaves a larger RMS are dropped."""
+    """Rings whose refitted conic leaves a larger RMS are dropped; on widely spaced rings the
+    limit is ``max_conic_rms_fraction`` of the spacing, on noisy ones 1.5 times the scatter
+    from one centre-line point to the next, where those are larger."""
+    max_conic_rms_fraction: float = 0.05
+    """The limit's share of the ring spacing: a faint line's centre scatters by a few % of
+    the spacing, a conic through points of a neighbouring ring is off by half of it."""
     min_arc_fraction: float = 0.25
     """A ring needs edge points over at least this fraction of its directions."""
 
@@ -82,12 +87,14 @@ def _locate_centres(
     contrast = peak - base
     ok = np.isfinite(c) & (np.abs(c) < search) & (contrast > 0)
     if bright is not None:
-        # A profile touching something brighter than the paper (laser stripe, glare) is biased.
+        # A line whose window touches something brighter than the paper (laser stripe,
+        # glare) is biased; beyond the window (where the search went) it does no harm.
         h, w = bright.shape
         iu, iv = np.rint(u).astype(np.intp), np.rint(v).astype(np.intp)
         inside = (iu >= 0) & (iu < w) & (iv >= 0) & (iv < h)
         hit = inside & bright[np.clip(iv, 0, h - 1), np.clip(iu, 0, w - 1)].astype(bool)
-        ok &= ~hit.any(axis=1)
+        near = np.abs(tau[None, :] - c[:, None]) <= half_window + 1.0
+        ok &= ~(hit & near).any(axis=1)
     return c, contrast, ok
 
 
@@ -163,6 +170,27 @@ def _min_spacing_px(conics: dict[int, NDArray], c: NDArray) -> float:
     return float(max(np.nanmin(gaps), 3.0))
 
 
+def _ratio_tolerance(
+    conic_i: NDArray, conic_j: NDArray, c: NDArray, expect: float, strict: bool
+) -> float:
+    """Relative tolerance on the pencil ratio of rings i < j (expected ``expect``).
+
+    5 % for the lens and the fit, a little more for distant rings (up to a ratio of 4), and
+    what a centre line ``sigma`` px off does to a ratio of squared radii: twice the relative
+    error of each ring's radius in the image (``sigma`` 1 px for coarse ray crossings, 0.25 px
+    for refined lines). A small inner ring's error counts as much as it weighs, not in
+    proportion to the ratio, which would let a wrong inner ring pass against large outer ones.
+    """
+    sigma = 0.25 if strict else 1.0
+    angles = np.linspace(0, 2 * np.pi, 16, endpoint=False)
+    dirs = np.column_stack([np.cos(angles), np.sin(angles)])
+    r_i = float(np.mean(_conic_point_on_ray(conic_i, c, dirs)))
+    r_j = float(np.mean(_conic_point_on_ray(conic_j, c, dirs)))
+    if not (np.isfinite(r_i) and np.isfinite(r_j)):
+        return 0.0  # a conic that does not surround the centre: no ring of this pencil
+    return 0.05 + 0.02 * min(expect, 4.0) + 2 * sigma * (1 / max(r_i, 1.0) + 1 / max(r_j, 1.0))
+
+
 def _pencil_centre(
     conics: dict[int, NDArray], radii: NDArray, c0: NDArray, strict: bool = False
 ) -> NDArray | None:
@@ -183,7 +211,7 @@ def _pencil_centre(
                 bad += 1
                 continue
             expect = (radii[j] / radii[i]) ** 2
-            tol = 0.05 + 0.02 * expect
+            tol = _ratio_tolerance(conics[i], conics[j], ctr[:2], expect, strict)
             if strict:
                 for sh in (-1, 1):
                     if 0 <= i + sh < len(radii) and 0 <= j + sh < len(radii):
@@ -257,8 +285,14 @@ def _refine_ring(
         if len(found) < 16:
             return None
         conic_new = fit_conic(found)
-    rms = float(np.sqrt(np.mean(sampson_distances(conic_new, found) ** 2)))
-    if rms > s.max_conic_rms_px or not _ellipse_ok(conic_new, c):
+    dist = sampson_distances(conic_new, found)
+    rms = float(np.sqrt(np.mean(dist**2)))
+    # The scatter from one point to the next around the ring is the line's own noise; a
+    # conic through a neighbour's points or bent by clutter leaves smooth residuals instead.
+    order = np.argsort(np.arctan2(found[:, 1] - c[1], found[:, 0] - c[0]))
+    noise = 1.4826 * float(np.median(np.abs(np.diff(dist[order])))) / np.sqrt(2.0)
+    limit = max(s.max_conic_rms_px, s.max_conic_rms_fraction * spacing_px, 1.5 * noise)
+    if rms > limit or not _ellipse_ok(conic_new, c):
         return None
     return found, conic_new, np.array([rms])
 
@@ -270,10 +304,16 @@ def _refine_axes(
     conics: dict[int, NDArray],
     radii: NDArray,
     half_window: float,
+    line_px: float,
     size: tuple[int, int],
     bright: NDArray | None = None,
 ) -> tuple[list[NDArray], list[NDArray]] | None:
-    """Sub-pixel points on both diameter lines, between the rings; refitted lines."""
+    """Sub-pixel points on both diameter lines, between the rings; refitted lines.
+
+    A profile across a diameter runs along the rings beside it, so it only has to stay clear
+    of their printed lines and blur: between closely spaced rings the points keep half a
+    line width and 1.5 px from them rather than a whole profile window.
+    """
     w, h = size
     keys = sorted(conics)
     new_lines, new_pts = [], []
@@ -293,8 +333,8 @@ def _refine_axes(
                 if not (np.isfinite(a) and np.isfinite(b)):
                     continue
                 gap = b - a
-                clear = half_window + 1.5
-                if gap < 2 * clear + 2:
+                clear = max(0.5 * line_px + 1.5, min(half_window + 1.5, 0.5 * gap - 1.0))
+                if gap < 2 * clear:
                     continue
                 n = max(1, int((gap - 2 * clear) / 2))
                 for tt in np.linspace(a + clear, b - clear, n):
@@ -335,20 +375,23 @@ def _refine_axes(
 
 
 def _line_evidence(
-    d: NDArray, line: NDArray, c: NDArray, reach_px: float, offset_px: float
+    d: NDArray, line: NDArray, c: NDArray, ends_px: NDArray, offset_px: float
 ) -> float:
     """Median darkness on ``line`` minus that on its two parallels ``offset_px`` away.
 
-    Sampled every pixel within ``reach_px`` of ``c`` inside the image. The rings cross the
-    line and its parallels alike; a printed diameter adds its own darkness, a line through
-    the centre that is not a diameter adds nothing.
+    Sampled every pixel between the line's two crossings ``ends_px`` ``(2, 2)`` of the
+    largest ring (beyond them the diameter is not printed; on a steeply tilted target a
+    fixed reach would take mostly paper or surroundings along the short diameter), inside
+    the image. The rings cross the line and its parallels alike; a printed diameter adds its
+    own darkness, a line through the centre that is not a diameter adds nothing.
     """
     h, w = d.shape
     ln = _unit_line(line)
     n = ln[:2]
     e = np.array([-n[1], n[0]])
     foot = c - (float(n @ c) + ln[2]) * n
-    t = np.arange(-reach_px, reach_px + 0.5, 1.0)
+    t_ends = (np.asarray(ends_px, dtype=np.float64) - foot) @ e
+    t = np.arange(float(t_ends.min()), float(t_ends.max()) + 0.5, 1.0)
     pts = foot + t[:, None] * e
     inside = (
         (pts[:, 0] > offset_px + 1)
@@ -370,11 +413,11 @@ def _line_evidence(
 def _pair_agrees(conics: dict[int, NDArray], radii: NDArray, i: int, j: int) -> bool:
     """Whether rings i < j have the pencil ratio of the spec (strictly, see _pencil_centre)."""
     try:
-        _, ratio = pencil_center(conics[i], conics[j])
+        ctr, ratio = pencil_center(conics[i], conics[j])
     except np.linalg.LinAlgError:
         return False
     expect = (radii[j] / radii[i]) ** 2
-    tol = 0.05 + 0.02 * expect
+    tol = _ratio_tolerance(conics[i], conics[j], ctr[:2], expect, strict=True)
     for sh in (-1, 1):
         if 0 <= i + sh < len(radii) and 0 <= j + sh < len(radii):
             tol = min(tol, 0.4 * abs((radii[j + sh] / radii[i + sh]) ** 2 / expect - 1))

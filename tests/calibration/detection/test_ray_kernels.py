@@ -1,0 +1,113 @@
+"""The compiled ray labelling against a plain per-ray reference, and on a drawn target."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from scipy import ndimage
+
+from calibration.detection.ray_kernels import label_rays
+
+
+def _reference(d: np.ndarray, c: np.ndarray, angle: float, radii: np.ndarray, thr: float):
+    """One ray the slow, obvious way: the whole profile, run maxima (not the run at the
+    start), the first ones fitted with lstsq."""
+    h, w = d.shape
+    t = np.arange(1.0, float(np.hypot(w, h)))
+    u, v = c[0] + t * np.cos(angle), c[1] + t * np.sin(angle)
+    profile = ndimage.map_coordinates(d, [v, u], order=1, mode="constant")
+    profile[~((u >= 1) & (u <= w - 2) & (v >= 1) & (v <= h - 2))] = 0.0
+    above = profile > thr
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], above.astype(np.int8), [0]])))
+    peaks = [int(s + np.argmax(profile[s:e])) for s, e in zip(edges[::2], edges[1::2]) if s > 0]
+    m = min(len(peaks), len(radii))
+    tp = []
+    for j in peaks[:m]:
+        y0, y1, y2 = profile[j - 1 : j + 2] if 0 < j < len(t) - 1 else (0.0, 1.0, 0.0)
+        tp.append(t[j] + (0.5 * (y0 - y2) / (y0 - 2 * y1 + y2) if y0 - 2 * y1 + y2 < 0 else 0.0))
+    tp = np.asarray(tp)
+    if m < 3:
+        return m, tp, np.inf
+    r = radii[:m]
+    (a, b), *_ = np.linalg.lstsq(np.column_stack([r, -r * tp]), tp, rcond=None)
+    den = 1 + b * r
+    if np.any(den <= 0.05) or a <= 0:
+        return m, tp, np.inf
+    return m, tp, float(np.max(np.abs(a * r / den - tp)))
+
+
+def _rings_image(rng: np.random.Generator, radii_px: np.ndarray, centre: tuple[int, int]):
+    """A darkness map: ellipses around ``centre`` (a tilted target), noise and clutter."""
+    d = np.zeros((300, 400))
+    for r in radii_px:
+        axes = (int(r), int(0.8 * r))
+        cv2.ellipse(d, centre, axes, 20.0, 0.0, 360.0, 1.0, 2)
+    cv2.line(d, (0, centre[1]), (399, centre[1] + 40), 1.0, 2)  # through the centre
+    cv2.circle(d, (350, 40), 12, 0.8, -1)  # clutter
+    # (a darkness is never negative: negative marks hidden print)
+    return np.maximum(cv2.GaussianBlur(d, (0, 0), 1.0) + rng.normal(0.0, 0.05, d.shape), 0.0)
+
+
+def test_each_ray_is_labelled_as_the_per_ray_reference_labels_it():
+    rng = np.random.default_rng(3)
+    radii = np.array([10.0, 20.0, 30.0, 40.0, 55.0])
+    centre = np.array([190.0, 160.0])
+    d = _rings_image(rng, 2.2 * radii, (190, 160))
+    angles = np.linspace(0, 2 * np.pi, 96, endpoint=False) + 0.013
+    count, peaks, err = label_rays(d, centre, angles, radii, 0.3)
+    fitted = 0
+    for i, ang in enumerate(angles):
+        m, tp, e = _reference(d, centre, ang, radii, 0.3)
+        assert count[i] == m
+        np.testing.assert_allclose(peaks[i, :m], tp, atol=1e-9)
+        assert np.all(np.isnan(peaks[i, m:]))
+        if np.isfinite(e):
+            fitted += 1
+            assert abs(err[i] - e) < 1e-6 * max(1.0, e)
+        else:
+            assert not np.isfinite(err[i])
+    assert fitted > 48  # most rays cross the rings cleanly
+
+
+def test_rays_from_the_centre_of_a_target_fit_its_radii_and_others_do_not():
+    rng = np.random.default_rng(4)
+    radii = np.array([10.0, 20.0, 30.0, 40.0])
+    d = _rings_image(rng, 2.2 * radii, (190, 160))
+    angles = np.linspace(0, 2 * np.pi, 96, endpoint=False) + 0.013
+    count, _, err = label_rays(d, np.array([190.0, 160.0]), angles, radii, 0.3)
+    good = (count == 4) & (err < 2.0)
+    assert good.sum() > 60
+    # from a point off the centre the crossings are not a projectivity of these radii
+    count, _, err = label_rays(d, np.array([230.0, 130.0]), angles, radii, 0.3)
+    assert ((count >= 3) & (err < 2.0)).sum() < 15
+    # a centre in a blank image: no crossings
+    count, _, err = label_rays(np.zeros((50, 60)), np.array([30.0, 20.0]), angles, radii, 0.3)
+    assert np.all(count == 0) and np.all(np.isinf(err))
+
+
+def test_a_ray_ends_where_the_print_is_hidden_and_starts_where_it_leaves_it():
+    rng = np.random.default_rng(5)
+    radii = np.array([10.0, 20.0, 30.0, 40.0])
+    d = _rings_image(rng, 2.2 * radii, (190, 160))
+    angles = np.array([0.3, np.pi + 0.3])
+    centre = np.array([190.0, 160.0])
+    count, peaks, _ = label_rays(d, centre, angles, radii, 0.3)
+    assert np.all(count == 4)
+    # a stripe (hidden) across the rays between the second and third ring: two crossings left
+    hidden = d.copy()
+    t_mid = 0.5 * (peaks[0, 1] + peaks[0, 2])
+    u, v = centre + t_mid * np.array([np.cos(0.3), np.sin(0.3)])
+    cv2.circle(hidden, (int(u), int(v)), 4, -1.0, -1)
+    count_h, peaks_h, err_h = label_rays(hidden, centre, angles[:1], radii, 0.3)
+    assert count_h[0] == 2 and np.isinf(err_h[0])
+    np.testing.assert_allclose(peaks_h[0, :2], peaks[0, :2])
+    # a centre under a small hidden spot: the rays start beyond it and keep their labels
+    spot = d.copy()
+    cv2.circle(spot, (190, 160), 3, -1.0, -1)
+    count_s, peaks_s, _ = label_rays(spot, centre, angles, radii, 0.3)
+    assert np.all(count_s == 4)
+    np.testing.assert_allclose(peaks_s, peaks)
+    # ... but not when the spot reaches past half the first ring's distance
+    cv2.circle(spot, (190, 160), int(0.7 * peaks[0, 0]), -1.0, -1)
+    count_s, _, _ = label_rays(spot, centre, angles, radii, 0.3)
+    assert np.all(count_s == 0)
