@@ -9,10 +9,10 @@ calibration (with the covariance the file now carries), a new sweep of the same 
 scan, the measurement with ``configs/plans/modern_sweep.toml`` and the EF check. With
 ``--randomised`` each seed also draws another sensor (camera, lens, laser geometry, hand-eye,
 robot repeatability, noise: :func:`scanner.virtual_cell.random_cell.randomised_cell`), and that
-sensor gets its own acceptance test first, as a user's would: an independent sweep of the same
-scene, scanned with the sensor's true calibration and judged by ``scanner acceptance``
-(``configs/plans/acceptance_modern.toml``); its PS and SD become the plan's ``instrument``
-figures for that seed (the modern plan's are the modern sensor's own).
+sensor gets its own acceptance test, as a user's would after calibrating it: an independent
+100-frame sweep of the same scene, scanned with the job's calibration and judged by
+``scanner acceptance`` (``configs/plans/acceptance_modern.toml``); its PS and SD become the
+plan's ``instrument`` figures for that seed (the modern plan's are the modern sensor's own).
 
 For each characteristic (sphere spacing, both sphere diameters, the plate's flatness, every EF
 length) the true error is the measured value minus the cell's exact geometry (the plate is
@@ -49,21 +49,26 @@ from scanner.virtual_cell.random_cell import randomised_cell
 CHARACTERISTICS = ("sphere spacing", "sphere_1 diameter", "sphere_2 diameter", "plate flatness")
 PLAN = "modern_sweep"
 ACCEPTANCE = "acceptance_modern"
+#: The acceptance sweep's frames (the shipped plan's figures came from a 100-frame sweep).
+ACCEPTANCE_FRAMES = 100
 
 
 def sensor_acceptance(cell: CellConfig, seed: int, folder: Path) -> dict[str, float]:
     """The randomised sensor's own PS and SD (mm): its acceptance test on an independent sweep.
 
-    The sweep is rendered with another seed than the job's (its noise is not the job's), scanned
-    with the sensor's true calibration, and judged against ``ACCEPTANCE``. Cached in
+    As a user verifies a sensor after calibrating it: the sweep (``ACCEPTANCE_FRAMES`` frames,
+    rendered with another seed than the job's, so its noise is not the job's) is scanned with
+    the job's own calibration and judged against ``ACCEPTANCE``. Cached in
     ``folder/acceptance.json``.
     """
     cached = folder / "acceptance.json"
     if cached.is_file():
         return json.loads(cached.read_text())
     sim = folder / "acceptance"
-    stages.simulate(cell, sim, seed=20_000 + seed, sessions=("sweep",), workers=2)
-    stages.scan([sim / "sweep"], sim / "calibration_true.json", sim / "cloud.ply")
+    stages.simulate(
+        cell, sim, seed=20_000 + seed, sessions=("sweep",), sweep_frames=ACCEPTANCE_FRAMES
+    )
+    stages.scan([sim / "sweep"], folder / "cal.json", sim / "cloud.ply")
     judged = stages.acceptance(sim / "cloud.ply", ACCEPTANCE, sim / "acceptance.json")
     figures = {sym: judged.result.worst(sym) for sym in ("PS", "SD")}
     shutil.rmtree(sim / "sweep", ignore_errors=True)
