@@ -358,7 +358,7 @@ def _detect_with_kernel(
     paper = float(np.median(_sample(bg, ring_pts[:, 0], ring_pts[:, 1])))
     # Both diameters must be printed lines, not any two lines through the centre.
     for ln, ends_ln in zip(axis_lines, ends, strict=True):
-        ev = _line_evidence(d, ln, center, ends_ln, 2.0 * half_window + 2.0)
+        ev = _line_evidence(d, ln, center, ends_ln, 2.0 * half_window + 2.0, line_dark)
         if ev < 0.3 * line_dark:
             return TargetObservation.failed(
                 f"diameter line not printed: darkness {ev:.2f} on it against "

@@ -375,15 +375,17 @@ def _refine_axes(
 
 
 def _line_evidence(
-    d: NDArray, line: NDArray, c: NDArray, ends_px: NDArray, offset_px: float
+    d: NDArray, line: NDArray, c: NDArray, ends_px: NDArray, offset_px: float, ring_dark: float
 ) -> float:
     """Median darkness on ``line`` minus that on its two parallels ``offset_px`` away.
 
     Sampled every pixel between the line's two crossings ``ends_px`` ``(2, 2)`` of the
     largest ring (beyond them the diameter is not printed; on a steeply tilted target a
     fixed reach would take mostly paper or surroundings along the short diameter), inside
-    the image. The rings cross the line and its parallels alike; a printed diameter adds its
-    own darkness, a line through the centre that is not a diameter adds nothing.
+    the image. The rings cross the line and its parallels alike, so only the samples whose
+    parallels are on paper (darker than half ``ring_dark``, the rings' darkness, on neither)
+    count: there a printed diameter shows its own darkness, a line through the centre that
+    is not a diameter shows none. Closely spaced thick rings would otherwise fill the median.
     """
     h, w = d.shape
     ln = _unit_line(line)
@@ -406,8 +408,11 @@ def _line_evidence(
     def along(p: NDArray) -> NDArray:
         return ndimage.map_coordinates(d, [p[:, 1], p[:, 0]], order=1)
 
-    side = 0.5 * (along(pts + offset_px * n) + along(pts - offset_px * n))
-    return float(np.median(along(pts) - side))
+    side_a, side_b = along(pts + offset_px * n), along(pts - offset_px * n)
+    paper = (side_a < 0.5 * ring_dark) & (side_b < 0.5 * ring_dark)
+    if np.count_nonzero(paper) < 10:
+        return 0.0
+    return float(np.median(along(pts[paper]) - 0.5 * (side_a + side_b)[paper]))
 
 
 def _pair_agrees(conics: dict[int, NDArray], radii: NDArray, i: int, j: int) -> bool:

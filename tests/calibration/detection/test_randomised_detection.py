@@ -101,4 +101,4 @@ def test_target_free_views_are_refused():
 
 @pytest.mark.slow
 def test_larger_randomised_slice_never_mislabels():
-    _check_slice(60, seed=8, min_rate=0.8)  # 44 of 50 (2026-11-24)
+    _check_slice(60, seed=8, min_rate=0.9)  # 46 of 50 (2026-11-25; 44 on 2026-11-24)
