@@ -119,13 +119,14 @@ def detect_concentric(
     # or far target, closely spaced rings) when that finds no target.
     first = max(9, min(h, w) // 40)
     kernels = sorted({first, max(5, first // 2), max(5, first // 4)}, reverse=True)
-    refused = None
+    refused, furthest = None, -1
     for kernel in kernels:
-        obs = _detect_with_kernel(img, target, s, kernel, size)
+        progress = [0]
+        obs = _detect_with_kernel(img, target, s, kernel, size, progress)
         if obs:
             return obs
-        if refused is None:
-            refused = obs  # the first scale's reason is the one reported
+        if progress[0] > furthest:  # the reason of the scale that got furthest is reported
+            refused, furthest = obs, progress[0]
     return refused  # type: ignore[return-value]
 
 
@@ -192,8 +193,13 @@ def _detect_with_kernel(
     s: ConcentricDetectorSettings,
     kernel: int,
     size: tuple[int, int],
+    progress: list[int],
 ) -> TargetObservation:
-    """:func:`detect_concentric` with the coarse stage's closing kernel ``kernel`` px."""
+    """:func:`detect_concentric` with the coarse stage's closing kernel ``kernel`` px.
+
+    ``progress[0]`` is set to the number of stages passed (lines, centre, coarse pencil,
+    rings measured, tilt, diameters), so that of several refusals the most telling is shown.
+    """
     h, w = img.shape
     radii = np.asarray(target.ring_radii_mm, dtype=np.float64)
     # Coarse stage on a lightly smoothed image: noise and grain drop about threefold, a
@@ -211,6 +217,7 @@ def _detect_with_kernel(
     if len(lines) < 2:
         return TargetObservation.failed("no pair of diameter lines found", size, KIND)
 
+    progress[0] = 1
     # -- candidate centres from pairs of long lines, scored by consistent ring rays
     best = None
     for i in range(len(lines)):
@@ -238,6 +245,7 @@ def _detect_with_kernel(
         return TargetObservation.failed(
             "no ring pencil found (no pair of lines with rings around their crossing)", size, KIND
         )
+    progress[0] = 2
     _, c, per_ring, (l1, l2), axis_angles = best
     # the chosen centre's rings from many more rays (the kernel makes them cheap)
     per_ring, _ = _label_rays(z_rays, c, radii, thr, axis_angles, n_rays=384)
@@ -248,6 +256,7 @@ def _detect_with_kernel(
         return TargetObservation.failed(pencil, size, KIND)
     conics, c = pencil
 
+    progress[0] = 3
     # -- line width in px estimate, for windows
     spacing_px = _min_spacing_px(conics, c)
     line_frac = target.line_width_mm / float(np.min(np.diff(radii)))
@@ -324,6 +333,7 @@ def _detect_with_kernel(
         axis_lines, axis_pts = axis_res
         # (A ring the coarse ray labelling missed is not recovered: only measured rings count.)
 
+    progress[0] = 4
     ratio = min(_conic_axes_ratio(cn) for cn in conics.values())
     if ratio < np.cos(np.radians(s.max_tilt_deg)):
         return TargetObservation.failed(
@@ -333,6 +343,7 @@ def _detect_with_kernel(
             KIND,
         )
 
+    progress[0] = 5
     # -- centre O: intersection of the diameter lines, checked against the pencil centre
     x = intersect_lines(axis_lines[0], axis_lines[1])
     o_lines = x[:2] / x[2]
@@ -366,6 +377,7 @@ def _detect_with_kernel(
                 size,
                 KIND,
             )
+    progress[0] = 6
     labelled = _label_by_marker(
         img, bg, target, center, ends, conics, radii, axis_lines, line_dark, paper
     )

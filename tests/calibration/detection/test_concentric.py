@@ -1,8 +1,10 @@
 import numpy as np
 import pytest
 
+from calibration.detection import concentric
 from calibration.detection.concentric import detect_concentric
 from calibration.detection.detect import detect_target
+from calibration.detection.observations import TargetObservation
 from calibration.symmetry import relabel
 from scanner.core.conventions import transform_points
 from tests.calibration.synth_concentric import demo_target, look_at_pose, render
@@ -140,6 +142,21 @@ def test_no_target_gives_a_reason():
     assert not obs
     assert obs.reason
     assert obs.image_size == (640, 480)
+
+
+def test_of_several_scales_the_refusal_that_got_furthest_is_reported(monkeypatch):
+    # each closing kernel fails at another stage: the user sees the most telling reason
+    stages = iter([(1, "no ring pencil found: 1 rings fitted"), (5, "diameter line not printed"),
+                   (2, "radius ratios disagree")])  # fmt: skip
+
+    def fake(img, target, s, kernel, size, progress):
+        progress[0], reason = next(stages)
+        return TargetObservation.failed(reason, size, "concentric_circles")
+
+    monkeypatch.setattr(concentric, "_detect_with_kernel", fake)
+    obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
+    assert not obs
+    assert obs.reason == "diameter line not printed"
 
 
 def test_too_oblique_is_refused():
