@@ -17,18 +17,9 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from scanner.core.jit import HAVE_NUMBA, njit
+
 __all__ = ["HAVE_NUMBA", "label_rays"]
-
-try:
-    from numba import njit
-except ImportError:  # pragma: no cover - numba is a dependency; kept for odd platforms
-    HAVE_NUMBA = False
-
-    def njit(*args, **kwargs):
-        return lambda fn: fn
-
-else:
-    HAVE_NUMBA = True
 
 
 @njit(cache=True, nogil=True)

@@ -18,20 +18,10 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from scanner.core.jit import HAVE_NUMBA, njit
 from scanner.stripe.profile import _FWHM_PER_SIGMA
 
 __all__ = ["HAVE_NUMBA", "line_peaks"]
-
-try:
-    from numba import njit
-except ImportError:  # pragma: no cover - numba is a dependency; kept for odd platforms
-    HAVE_NUMBA = False
-
-    def njit(*args, **kwargs):
-        return lambda fn: fn
-
-else:
-    HAVE_NUMBA = True
 
 _BLOCK = 256  # pixels whose maximum is taken in one vectorised run (a multiple of 8)
 _ONES = np.uint64(0x0101010101010101)
