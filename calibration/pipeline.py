@@ -38,6 +38,7 @@ from calibration.hand_eye import (
     paper_hand_eye,
 )
 from calibration.intrinsics import calibrate_intrinsics
+from calibration.laser_origin import LaserOriginResult, estimate_laser_origin, shadow_lines
 from calibration.light_plane import (
     LaserView,
     LightPlaneResult,
@@ -50,9 +51,10 @@ from scanner.core.camera import CameraModel, intersect_rays_with_plane
 from scanner.core.images import load_gray_image
 from scanner.core.parallel import process_pool
 from scanner.core.targets import ChessboardTarget, ConcentricCirclesTarget, TargetSpec
-from scanner.formats.calibration_file import Calibration, CalibrationQuality
+from scanner.formats.calibration_file import Calibration, CalibrationQuality, LightPlane
 from scanner.formats.session import Frame, Session
 from scanner.stripe.extract import extract_stripe
+from scanner.stripe.profile import StripeOptions
 
 __all__ = ["CalibrationResult", "calibrate_session", "stripe_pixel_at", "target_extent_mm"]
 
@@ -61,6 +63,9 @@ logger = logging.getLogger(__name__)
 METHODS = ("default", "paper")
 #: Rows with a robot pose and a target image that a hand-eye calibration needs at least.
 MIN_POSED_VIEWS = 3
+MAX_ORIGIN_STD_MM = 10.0
+"""An estimated laser origin less certain than this is reported, not written to the file."""
+_ORIGIN_PEAKS = StripeOptions(min_relative_peak=0.02)
 
 
 @dataclass(frozen=True)
@@ -381,6 +386,7 @@ def calibrate_session(
 
     # 5. light plane (none from a session without laser images: a camera-only calibration)
     plane_res: LightPlaneResult | None = None
+    origin: LaserOriginResult | None = None
     laser_views: list[LaserView] = []
     plane_paper = None
     skipped: list[dict[str, Any]] = []
@@ -415,6 +421,11 @@ def calibrate_session(
         for r in plane_res.rejected:
             rejected.append(Rejection(int(r["frame_id"]), "light plane", r["reason"]))
         timings["light_plane_s"] = time.perf_counter() - t1
+
+        stage("laser origin")
+        t1 = time.perf_counter()
+        origin = _laser_origin(session, with_laser, camera, plane_res.plane)  # type: ignore[arg-type]
+        timings["laser_origin_s"] = time.perf_counter() - t1
 
     # 6. hand-eye
     stage("hand-eye")
@@ -549,6 +560,7 @@ def calibrate_session(
         "extrinsics": extrinsics_q,
         "labelling": labelling,
         "light_plane": None if plane_res is None else plane_res.quality(),
+        "laser_origin": None if origin is None else origin.quality(),
         "hand_eye": he.quality(),
         "rejected": [r.to_json() for r in rejected],
         "skipped": skipped if method == "default" else [],
@@ -568,6 +580,9 @@ def calibrate_session(
         dist=camera.dist,
         light_plane=None if plane_res is None else plane_res.plane,
         flange_from_cam=he.flange_from_cam,  # type: ignore[arg-type]
+        laser_origin_cam=(
+            origin.origin_cam if origin is not None and origin.std_mm <= MAX_ORIGIN_STD_MM else None
+        ),
         quality=quality,
         covariance=covariance,
     )
@@ -585,6 +600,23 @@ def calibrate_session(
         per_view_rms_px=per_view,
         timings=timings,
     )
+
+
+def _laser_origin(
+    session: Session, frames: list[Frame], camera: CameraModel, plane: LightPlane
+) -> LaserOriginResult:
+    """The laser origin from the shadow edges in every laser frame (:mod:`calibration.laser_origin`).
+
+    The frames are read again with a low threshold for further peaks on a scan line: a faint
+    stripe on the background sharing columns with the bright one on the target is kept, so
+    that a stretch ends where the light ends, not where a brighter one starts.
+    """
+    lines = []
+    for f in frames:
+        image, background = session.load_laser_pair(f)
+        prof = extract_stripe(image, mode="precise", background=background, options=_ORIGIN_PEAKS)
+        lines += shadow_lines(prof.uv, camera, plane, f.id, prof.contrast)
+    return estimate_laser_origin(lines, plane)
 
 
 def _paper_hand_eye(

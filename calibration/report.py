@@ -21,6 +21,7 @@ from calibration.intrinsics import IntrinsicsResult
 from calibration.intrinsics_model import UncertaintyMap
 from calibration.pipeline import CalibrationResult
 from scanner.formats import html as rep
+from scanner.formats.calibration_file import Calibration
 
 __all__ = ["write_calibration_report"]
 
@@ -119,6 +120,25 @@ def _uncertainty_figure(umap: UncertaintyMap) -> Figure:
     ax.set_ylabel("v (px)")
     fig.tight_layout()
     return fig
+
+
+def _origin_text(cal: Calibration) -> str:
+    """The laser origin written to the file, its source and uncertainty, or why there is none."""
+    record = cal.quality.record.get("laser_origin")
+    est = record if isinstance(record, dict) else {}
+    if cal.laser_origin_cam is None:
+        why = est.get("reason") or (
+            f"estimate too uncertain (std {est['std_mm']:.1f} mm)" if "std_mm" in est else ""
+        )
+        return f"not written: {why}" if why else "not written"
+    xyz = " ".join(f"{v:.2f}" for v in cal.laser_origin_cam)
+    source = cal.quality.record.get("laser_origin_source", "")
+    if "std_mm" in est and str(source).startswith("estimated"):
+        return (
+            f"{xyz} (std {est['std_mm']:.2f} mm within the plane; {est['inliers']} shadow edges "
+            f"in {len(est['frames'])} frames)"
+        )
+    return f"{xyz} ({source})" if source else xyz
 
 
 def _model_section(intr: IntrinsicsResult) -> str:
@@ -233,6 +253,7 @@ def write_calibration_report(
                     "residual RMS (mm)": _fmt(lpq.rms_mm, None, 4),
                     "points": lpq.n_points,
                     "frames used / rejected": f"{len(lpq.per_frame)} / {len(lpq.rejected)}",
+                    "laser origin (mm, camera frame)": _origin_text(cal),
                 }
             )
             + (

@@ -368,6 +368,8 @@ def calibrate(
     )
     record = dict(result.calibration.quality.record)
     record["provenance"] = provenance("calibrate", {"session": Path(session_dir)})
+    if result.calibration.laser_origin_cam is not None:
+        record["laser_origin_source"] = "estimated from the laser frames' shadow edges"
     calibration = replace(
         result.calibration, quality=replace(result.calibration.quality, record=record)
     )
@@ -378,7 +380,12 @@ def calibrate(
             raise ValueError("--laser-origin-mm: the session gave no light plane to put it on")
         off = abs(float(plane.normal @ origin + plane.d))
         if off <= 5.0:
-            calibration = replace(calibration, laser_origin_cam=origin)
+            record["laser_origin_source"] = "given (--laser-origin-mm, the sensor's drawing)"
+            calibration = replace(
+                calibration,
+                laser_origin_cam=origin,
+                quality=replace(calibration.quality, record=record),
+            )
         elif laser_origin_strict:
             raise ValueError(
                 f"--laser-origin-mm: expected a point on the calibrated light plane, got one "

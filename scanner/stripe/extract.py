@@ -191,4 +191,5 @@ def extract_stripe(
         orientation=orientation,
         mode=mode,
         noise=noise,
+        contrast=peaks.contrast.astype(np.float32, copy=False),
     )

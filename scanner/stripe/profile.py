@@ -119,6 +119,9 @@ class StripeProfile:
         How the frame was scanned and which estimator ran.
     noise : float
         Image noise estimate used for the thresholds (grey levels).
+    contrast : ndarray, shape (N,), float32, or None
+        Peak height above the line's local background (grey levels), where the extractor
+        gave it.
     """
 
     u: NDArray
@@ -131,6 +134,7 @@ class StripeProfile:
     mode: str = "fast"
     noise: float = 0.0
     extra: dict[str, Any] = field(default_factory=dict)
+    contrast: NDArray | None = None
 
     def __len__(self) -> int:
         return int(self.u.shape[0])
@@ -152,6 +156,7 @@ class StripeProfile:
             self.orientation,
             self.mode,
             self.noise,
+            contrast=None if self.contrast is None else self.contrast[mask],
         )
 
     @classmethod

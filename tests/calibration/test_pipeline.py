@@ -115,6 +115,14 @@ def test_virtual_cell_default_calibration_matches_truth(modern_cell):
     assert np.all(np.abs(err) < 4 * sd)
     assert cov.std["plane_d"] < 0.02 and cov.std["cam_tz"] < 0.05
     assert cov.robot_translation_mm == pytest.approx(0.02, rel=0.5)
+    # Issue #16: the laser origin from the shadow edges, within 2 mm and within its stated
+    # 95 % ellipse (seed 0: 1.1 mm, Mahalanobis 1.4 of 2.45).
+    origin = q["laser_origin"]
+    assert origin["estimated"] and cal.laser_origin_cam is not None
+    err = cal.laser_origin_cam - truth.laser_origin_cam
+    assert np.linalg.norm(err) < 2.0
+    assert np.sqrt(err @ np.linalg.pinv(np.asarray(origin["covariance_mm2"])) @ err) < 2.45
+    assert abs(cal.light_plane.signed_distance(cal.laser_origin_cam[None])[0]) < 1e-6
 
 
 @pytest.mark.slow

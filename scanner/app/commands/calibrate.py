@@ -50,7 +50,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=None,
         metavar=("X", "Y", "Z"),
         help="apex of the laser fan in the camera frame, mm, from the sensor's drawing: written "
-        "to the file as laser_origin_cam (scanning uses it for each point's illumination angle)",
+        "to the file as laser_origin_cam instead of the one estimated from the laser frames' "
+        "shadow edges (scanning uses it for each point's illumination angle)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run)

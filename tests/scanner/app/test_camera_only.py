@@ -128,7 +128,11 @@ def test_laser_origin_from_the_drawing_is_written_when_it_lies_on_the_plane(
     out = tmp_path / "c.json"
     # The modern cell's laser: origin (10, -140, -5) mm in the camera frame (configs/cells).
     run = stages.calibrate(session, out, report=None, laser_origin_cam_mm=(10.0, -140.0, -5.0))
-    np.testing.assert_allclose(read_calibration(out).laser_origin_cam, [10.0, -140.0, -5.0])
+    written = read_calibration(out)
+    np.testing.assert_allclose(written.laser_origin_cam, [10.0, -140.0, -5.0])
+    # The drawing's value replaces the estimate from the shadow edges, and the file says so.
+    assert written.quality.record["laser_origin_source"].startswith("given")
+    assert written.quality.record["laser_origin"]["estimated"]
     # The same calibration again, with an origin 40 mm off the plane: refused.
     monkeypatch.setattr(stages, "calibrate_session", lambda *args, **kwargs: run.result)
     off = tmp_path / "off.json"
