@@ -7,13 +7,14 @@ the stated covariance (2 degrees of freedom: 95 % of honest estimates lie within
 Cells: the modern and the paper cell, and randomised sensors (other camera, lens, laser baseline
 and fan tilt: :func:`scanner.virtual_cell.random_cell.randomised_cell`).
 
-``--spheres`` also scans the modern cell's sweep (seed 0) with the true calibration three ways:
-as ``scanner scan`` does by default, and in precise mode with a 65 deg incidence limit using the
-design origin and then the estimated one (modern seed 0). Each cloud as written is judged
-against the truth: every point within 1.5 mm of each sphere, the least-squares diameter's error,
-the form range PF and the spacing's error. Targets (issue #16): diameters within 0.03 mm, PF
-within 0.25 mm, spacing within 0.05 mm; the estimated origin changes the figures by less than
-0.005 mm.
+``--spheres`` also scans the sweep (seed 0) of the modern cell and of randomised sensor 0 with
+the true calibration three ways: as ``scanner scan`` does by default, and in precise mode with a
+65 deg incidence limit using the design origin and then the estimated one (that cell's seed 0).
+Each cloud as written is judged against the truth: every point within 1.5 mm of each sphere
+(and not within 1.5 mm of the bar joining them), the least-squares diameter's error, the form
+range PF and the spacing's error, with the points' noise and the range that noise alone gives.
+Targets (issue #16): diameters within 0.03 mm, PF within 0.25 mm, spacing within 0.05 mm; the
+estimated origin changes the figures by less than 0.005 mm.
 
     python benchmarks/bench_laser_origin.py [--seeds 3] [--randomised 3] [--spheres]
         [--work /tmp/bench_laser_origin]
@@ -36,9 +37,9 @@ from scanner.app import stages
 from scanner.formats.calibration_file import read_calibration, write_calibration
 from scanner.formats.clouds import cloud_arrays, read_cloud
 from scanner.scanning.pipeline import ScanOptions
-from scanner.virtual_cell.cell import load_cell
+from scanner.virtual_cell.cell import CellConfig, load_cell
 from scanner.virtual_cell.random_cell import randomised_cell
-from scanner.virtual_cell.truth import CellTruth, read_truth
+from scanner.virtual_cell.truth import CellTruth, ObjectTruth, read_truth
 
 SPHERE_FIGURES = ("sphere spacing", "sphere_1 diameter", "sphere_2 diameter")
 
@@ -73,23 +74,50 @@ def run_case(kind: str, seed: int, work: Path) -> dict:
     return result
 
 
+def _surface_distance(points: np.ndarray, obj: ObjectTruth) -> np.ndarray:
+    """Unsigned distance of ``points`` (N, 3) to a true sphere, cylinder or plane, mm."""
+    p = obj.params
+    if obj.type == "sphere":
+        c = np.asarray(p["center_mm"], dtype=np.float64)
+        return np.abs(np.linalg.norm(points - c, axis=1) - 0.5 * float(p["diameter_mm"]))
+    if obj.type == "cylinder":
+        p0, p1 = np.asarray(p["p0_mm"], float), np.asarray(p["p1_mm"], float)
+        axis = (p1 - p0) / np.linalg.norm(p1 - p0)
+        t = np.clip((points - p0) @ axis, 0.0, np.linalg.norm(p1 - p0))
+        radial = np.linalg.norm(points - p0 - np.outer(t, axis), axis=1)
+        return np.abs(radial - 0.5 * float(p["diameter_mm"]))
+    if obj.type == "plane":
+        return np.abs(points @ np.asarray(p["normal"], float) + float(p["d"]))
+    return np.full(len(points), np.inf)
+
+
 def cloud_sphere_figures(cloud_path: Path, truth: CellTruth) -> dict[str, float]:
-    """The cloud as written, every point within 1.5 mm of each true sphere: the least-squares
-    diameter's error, the form range PF (range of radial residuals), the spacing's error."""
+    """The cloud as written, every point within 1.5 mm of each true sphere (and not within
+    1.5 mm of the bar, post or table joining it): the least-squares diameter's error, the form
+    range PF (range of radial residuals), the spacing's error; and the points' noise (1.4826
+    MAD of the residuals) with the range that noise alone gives that many Gaussian points
+    (about 2 sigma sqrt(2 ln N))."""
     points = cloud_arrays(read_cloud(cloud_path))["positions"]
     spheres = [o for o in truth.objects if o.type == "sphere"]
+    others = [o for o in truth.objects if o.type != "sphere"]
+    apart = np.ones(len(points), bool)
+    for obj in others:
+        apart &= _surface_distance(points, obj) > 1.5
     out: dict[str, float] = {}
     centres = []
     for k, obj in enumerate(spheres, start=1):
         c0 = np.asarray(obj.params["center_mm"], dtype=np.float64)
         r0 = 0.5 * float(obj.params["diameter_mm"])
-        near = points[np.abs(np.linalg.norm(points - c0, axis=1) - r0) < 1.5]
+        near = points[(_surface_distance(points, obj) < 1.5) & apart]
         fit = least_squares(
             lambda x, p=near: np.linalg.norm(p - x[:3], axis=1) - x[3], np.append(c0, r0)
         )
         res = fit.fun
+        sigma = 1.4826 * float(np.median(np.abs(res - np.median(res))))
         out[f"sphere_{k} diameter error"] = 2 * (fit.x[3] - r0)
         out[f"sphere_{k} PF"] = float(res.max() - res.min())
+        out[f"sphere_{k} noise sigma"] = sigma
+        out[f"sphere_{k} PF of that noise alone"] = 2 * sigma * np.sqrt(2 * np.log(len(near)))
         out[f"sphere_{k} points"] = len(near)
         centres.append((fit.x[:3], c0))
     if len(centres) == 2:
@@ -98,18 +126,20 @@ def cloud_sphere_figures(cloud_path: Path, truth: CellTruth) -> dict[str, float]
     return out
 
 
-def sphere_change(work: Path, estimated_mm: list[float]) -> dict[str, dict[str, float]]:
-    """One modern sweep scanned three ways with the true calibration: as ``scanner scan`` does
-    by default, and in precise mode with a 65 deg incidence limit using the design origin and
-    ``estimated_mm``; each cloud's sphere figures as written (:func:`cloud_sphere_figures`)."""
-    folder = work / "spheres"
+def sphere_change(
+    work: Path, name: str, cell: CellConfig, estimated_mm: list[float]
+) -> dict[str, dict[str, float]]:
+    """A cell's sweep (seed 0) scanned three ways with the true calibration: as ``scanner scan``
+    does by default, and in precise mode with a 65 deg incidence limit using the design origin
+    and ``estimated_mm``; each cloud's sphere figures as written (:func:`cloud_sphere_figures`)."""
+    folder = work / f"spheres-{name}"
     sim = folder / "sim"
-    if not (sim / "sweep").is_dir():
-        stages.simulate("modern", sim, seed=0, sessions=("sweep",), workers=2)
+    if not (sim / "truth.json").is_file():
+        stages.simulate(cell, sim, seed=0, sessions=("sweep",), workers=2)
     truth = read_truth(sim / "truth.json")
     true_cal = read_calibration(sim / "calibration_true.json")
     runs = {
-        "default scan, no origin": (None, ScanOptions()),
+        "default scan": (None, ScanOptions()),
         "precise, 65 deg, design origin": (
             truth.laser_origin_cam,
             ScanOptions(mode="precise", max_incidence_deg=65.0),
@@ -120,7 +150,7 @@ def sphere_change(work: Path, estimated_mm: list[float]) -> dict[str, dict[str, 
         ),
     }
     figures = {}
-    for k, (name, (origin, options)) in enumerate(runs.items()):
+    for k, (run, (origin, options)) in enumerate(runs.items()):
         cal_path = folder / f"cal_{k}.json"
         write_calibration(
             cal_path,
@@ -132,8 +162,24 @@ def sphere_change(work: Path, estimated_mm: list[float]) -> dict[str, dict[str, 
         cloud = folder / f"cloud_{k}.ply"
         if not cloud.is_file():
             stages.scan([sim / "sweep"], cal_path, cloud, options=options)
-        figures[name] = cloud_sphere_figures(cloud, truth)
+        figures[run] = cloud_sphere_figures(cloud, truth)
     return figures
+
+
+def _print_spheres(title: str, figures: dict[str, dict[str, float]]) -> None:
+    names = list(figures)
+    print(f"\n{title}; the cloud as written, every point within 1.5 mm of each sphere:")
+    print("| figure | " + " | ".join(names) + " |")
+    print("|---|" + "---:|" * len(names))
+    for key in figures[names[0]]:
+        fmt = "{:.0f}" if key.endswith("points") else "{:+.4f}"
+        print(f"| {key} | " + " | ".join(fmt.format(figures[n][key]) for n in names) + " |")
+    a, b = figures[names[1]], figures[names[2]]
+    change = max(abs(a[k] - b[k]) for k in a if "error" in k)
+    print(
+        f"\nlargest change of a diameter or spacing error, estimated against design origin: "
+        f"{change:.4f} mm"
+    )
 
 
 def main() -> None:
@@ -170,24 +216,15 @@ def main() -> None:
             f"the stated 95 % ellipse: {covered}; worst error {max(r['error_norm_mm'] for r in done):.2f} mm"
         )
     if args.spheres:
-        modern0 = next(r for r in results if r["kind"] == "modern" and r["seed"] == 0)
-        figures = sphere_change(args.work, modern0["origin_cam_mm"])
-        names = list(figures)
-        print(
-            "\nmodern sweep (seed 0), true calibration; the cloud as written, every point "
-            "within 1.5 mm of each sphere:"
-        )
-        print("| figure | " + " | ".join(names) + " |")
-        print("|---|" + "---:|" * len(names))
-        for key in figures[names[0]]:
-            fmt = "{:d}" if key.endswith("points") else "{:+.4f}"
-            print(f"| {key} | " + " | ".join(fmt.format(figures[n][key]) for n in names) + " |")
-        a, b = figures[names[1]], figures[names[2]]
-        change = max(abs(a[k] - b[k]) for k in a if "error" in k)
-        print(
-            f"\nlargest change of a diameter or spacing error, estimated against design origin: "
-            f"{change:.4f} mm"
-        )
+        for kind, cell in (
+            ("modern", load_cell("modern")),
+            ("randomised", randomised_cell(load_cell("modern"), np.random.default_rng(10_000))),
+        ):
+            case = next((r for r in results if r["kind"] == kind and r["seed"] == 0), None)
+            if case is None or not case.get("estimated"):
+                continue
+            figures = sphere_change(args.work, kind, cell, case["origin_cam_mm"])
+            _print_spheres(f"{kind} cell's sweep (seed 0), true calibration", figures)
 
 
 if __name__ == "__main__":
