@@ -436,15 +436,21 @@ class PipelineJobs:
         )
 
     def _current_laser_origin(self) -> tuple[float, float, float] | None:
-        """The laser's origin the installed calibration carries (from the sensor's drawing, or
-        estimated): a recalibration keeps it, checked against its new light plane."""
+        """The laser's origin the installed calibration was given (the sensor's drawing): a
+        recalibration keeps it, checked against its new light plane. One the installed
+        calibration estimated from its own session is not carried over: the new session's
+        estimate replaces it."""
         if not self.calibration_path.is_file():
             return None
         try:
-            origin = read_calibration(self.calibration_path).laser_origin_cam
+            installed = read_calibration(self.calibration_path)
         except (InputError, ValueError):
             return None
-        return None if origin is None else (float(origin[0]), float(origin[1]), float(origin[2]))
+        origin = installed.laser_origin_cam
+        source = str(installed.quality.record.get("laser_origin_source", ""))
+        if origin is None or source.startswith("estimated"):
+            return None
+        return (float(origin[0]), float(origin[1]), float(origin[2]))
 
     def full_calibration(self, ctx: JobContext) -> JobOutcome:
         """Calibrate from a fresh ``calibration`` session; install it only if it passes the gate.

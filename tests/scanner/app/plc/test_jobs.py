@@ -276,7 +276,7 @@ def test_a_recipe_needs_a_plan_or_a_nominal():
 def test_a_recalibration_keeps_the_installed_laser_origin(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ):
-    """The laser's origin (from the sensor's drawing) is not in a calibration session: the
+    """A laser origin given from the sensor's drawing is not in a calibration session: the
     PLC's recalibration carries the installed one over, for the new plane to be checked on."""
     given: list[object] = []
     _fake_pipeline(monkeypatch, GOOD, [])
@@ -297,6 +297,15 @@ def test_a_recalibration_keeps_the_installed_laser_origin(
     ctx.work_dir.mkdir()
     assert jobs.full_calibration(ctx).passed
     assert given == [(150.0, 2.0, -5.0)]
+    # One the installed calibration estimated itself is not carried: the new session's wins.
+    record = {**installed.quality.record, "laser_origin_source": "estimated from shadow edges"}
+    write_calibration(
+        current, replace(installed, quality=replace(installed.quality, record=record))
+    )
+    ctx = _ctx(tmp_path, config)
+    ctx.work_dir.mkdir(exist_ok=True)
+    assert jobs.full_calibration(ctx).passed
+    assert given == [(150.0, 2.0, -5.0), None]
 
 
 def test_a_recipe_with_planned_sweeps_runs_the_full_object_job(
