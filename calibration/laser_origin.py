@@ -107,6 +107,10 @@ class LaserOriginResult(Outcome):
         The inliers' weighted residuals' mean square (1 when the stated end uncertainty fits).
     end_bias_px, end_bias_std_px : float
         How far outwards the stripe's ends were found, estimated with the origin, pixels.
+    near_cam, far_cam : ndarray, shape (L, 3)
+        Every candidate line's ends, camera frame, mm (for the report's figure).
+    inlier : ndarray of bool, shape (L,)
+        The lines that meet at the origin.
     """
 
     origin_cam: NDArray = field(default_factory=lambda: np.full(3, np.nan))
@@ -118,6 +122,9 @@ class LaserOriginResult(Outcome):
     chi2_reduced: float = float("nan")
     end_bias_px: float = float("nan")
     end_bias_std_px: float = float("nan")
+    near_cam: NDArray = field(default_factory=lambda: np.zeros((0, 3)))
+    far_cam: NDArray = field(default_factory=lambda: np.zeros((0, 3)))
+    inlier: NDArray = field(default_factory=lambda: np.zeros(0, bool))
 
     def quality(self) -> dict[str, object]:
         """The record the calibration file's ``quality.laser_origin`` carries."""
@@ -435,4 +442,7 @@ def estimate_laser_origin(lines: list[ShadowLine], plane: LightPlane) -> LaserOr
         chi2_reduced=chi2,
         end_bias_px=float(x[2]),
         end_bias_std_px=float(np.sqrt(cov[2, 2])),
+        near_cam=np.array([ln.near_cam for ln in lines]),
+        far_cam=np.array([ln.far_cam for ln in lines]),
+        inlier=inl,
     )

@@ -103,6 +103,8 @@ class CalibrationResult:
     hand_eye_views : list of PosedView
         The posed views the default hand-eye adjusted (empty for the paper's method), kept so
         that a study can rerun the hand-eye alone.
+    laser_origin : LaserOriginResult or None
+        The laser origin from the shadow edges; ``None`` without laser images.
     """
 
     calibration: Calibration
@@ -117,6 +119,7 @@ class CalibrationResult:
     rejected: list[Rejection] = field(default_factory=list)
     per_view_rms_px: dict[int, float] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
+    laser_origin: LaserOriginResult | None = None
 
     @property
     def quality(self) -> CalibrationQuality:
@@ -599,6 +602,7 @@ def calibrate_session(
         rejected=rejected,
         per_view_rms_px=per_view,
         timings=timings,
+        laser_origin=origin,
     )
 
 

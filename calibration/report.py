@@ -105,6 +105,51 @@ def _plane_figure(result: CalibrationResult) -> Figure | None:
     return fig
 
 
+def _origin_figure(result: CalibrationResult) -> Figure | None:
+    """The shadow lines in the light plane (camera x, z) and where they meet: the laser origin
+    with its 2-sigma ellipse."""
+    origin = result.laser_origin
+    if origin is None or len(origin.near_cam) == 0:
+        return None
+    fig = Figure(figsize=(6.4, 4.2))
+    ax = fig.add_subplot(1, 1, 1)
+    for near, far, used in zip(origin.near_cam, origin.far_cam, origin.inlier, strict=True):
+        ax.plot(
+            [near[0], far[0]],
+            [near[2], far[2]],
+            color="#4477aa" if used else "#bbbbbb",
+            linewidth=1.2 if used else 0.8,
+        )
+        if used and origin:
+            ax.plot(
+                [origin.origin_cam[0], near[0]],
+                [origin.origin_cam[2], near[2]],
+                color="#4477aa",
+                linewidth=0.5,
+                linestyle=":",
+            )
+    if origin:
+        o = origin.origin_cam
+        cov = origin.covariance_mm2[np.ix_([0, 2], [0, 2])]
+        vals, vecs = np.linalg.eigh(cov)
+        t = np.linspace(0.0, 2 * np.pi, 100)
+        ring = vecs @ (2 * np.sqrt(np.clip(vals, 0.0, None))[:, None] * [np.cos(t), np.sin(t)])
+        ax.plot(o[0] + ring[0], o[2] + ring[1], color="#cc3311", linewidth=1.0)
+        ax.plot(o[0], o[2], "+", color="#cc3311", markersize=10)
+        ax.set_title(
+            f"laser origin: {origin.inliers} of {origin.lines} shadow edges meet "
+            f"(2-sigma ellipse, std {origin.std_mm:.2f} mm)",
+            fontsize=9,
+        )
+    else:
+        ax.set_title(f"no laser origin: {origin.reason}", fontsize=8)
+    ax.set_xlabel("x_cam (mm)")
+    ax.set_ylabel("z_cam (mm)")
+    ax.set_aspect("equal", adjustable="datalim")
+    fig.tight_layout()
+    return fig
+
+
 def _uncertainty_figure(umap: UncertaintyMap) -> Figure:
     fig = Figure(figsize=(6.4, 4.6))
     ax = fig.add_subplot(1, 1, 1)
@@ -261,6 +306,16 @@ def write_calibration_report(
                     fig, "Stripe points in the camera frame and their distances to the plane"
                 )
                 if (fig := _plane_figure(result)) is not None
+                else ""
+            )
+            + (
+                rep.figure(
+                    fig,
+                    "Shadow edges in the light plane: the stripe's end on the card and its "
+                    "restart on the background lie on one ray from the laser; blue lines meet "
+                    "at the origin (grey: the camera's view, not the shadow, ended the stripe)",
+                )
+                if (fig := _origin_figure(result)) is not None
                 else ""
             )
             + (

@@ -147,6 +147,7 @@ def test_scanner_calibrate_command_writes_file_and_report(modern_cell, tmp_path)
     assert angle_between_rotations_deg(cal.flange_from_cam, truth.flange_from_cam) < 0.05
     page = (tmp_path / "reports" / "calib.html").read_text()  # named after --out
     assert "Verdict" in page and "data:image/png;base64" in page
+    assert "Shadow edges in the light plane" in page and "laser origin (mm" in page
 
 
 @pytest.mark.slow
