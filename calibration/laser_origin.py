@@ -396,12 +396,17 @@ def estimate_laser_origin(lines: list[ShadowLine], plane: LightPlane) -> LaserOr
             lines=len(lines),
         )
     x = best[2]
-    for _ in range(4):
-        inl = np.abs(ls.residuals(x)) < INLIER_SIGMAS
-        fit = least_squares(lambda p, m=inl: ls.residuals(p, m), x, method="lm")
-        x = fit.x
     inl = np.abs(ls.residuals(x)) < INLIER_SIGMAS
-    res = ls.residuals(x, inl)
+    for _ in range(5):
+        # The covariance below needs the fit of exactly the lines it keeps.
+        used = inl
+        fit = least_squares(lambda p, m=used: ls.residuals(p, m), x, method="lm")
+        x = fit.x
+        inl = np.abs(ls.residuals(x)) < INLIER_SIGMAS
+        if np.array_equal(inl, used):
+            break
+    inl = used
+    res = fit.fun
     dof = max(1, int(inl.sum()) - 2)  # the bias's prior is one more residual
     chi2 = float(np.sum(res**2) / dof)
     try:
