@@ -1,4 +1,4 @@
-"""Compiled fast-mode kernel: every scan line's primary peak and its window in one pass.
+"""Compiled stripe kernels: the fast mode's peaks and windows, the precise mode's Steger step.
 
 :func:`line_peaks` does per line what :func:`scanner.stripe.fast._measure_many` does for a whole
 frame with NumPy: the line's maximum (the first one, as :func:`numpy.argmax`), the window of
@@ -8,6 +8,10 @@ pixel outside the primary window clears the candidate threshold, which is all th
 multi-peak lines need to be searched further with NumPy. Windows that reach the image border
 are only marked: like every other uncommon peak they are measured by
 :func:`scanner.stripe.fast._measure`.
+
+:func:`steger_points` does per point what :func:`scanner.stripe.precise._refine_precise` does
+with NumPy for all points at once: the smoothed image's gradient and Hessian at the fast
+centre, the Taylor step across the stripe and the slide back onto the scan line.
 
 Compiled with numba where it imports (:data:`HAVE_NUMBA`); without it the callers keep the
 NumPy path.
@@ -21,7 +25,7 @@ from numpy.typing import NDArray
 from scanner.core.jit import HAVE_NUMBA, njit
 from scanner.stripe.profile import _FWHM_PER_SIGMA
 
-__all__ = ["HAVE_NUMBA", "line_peaks"]
+__all__ = ["HAVE_NUMBA", "line_peaks", "steger_points"]
 
 _BLOCK = 256  # pixels whose maximum is taken in one vectorised run (a multiple of 8)
 _ONES = np.uint64(0x0101010101010101)
@@ -217,3 +221,156 @@ def line_peaks(
 
 
 _NO_WORDS = np.zeros(0, np.uint64)
+
+
+# Sums may be reassociated (vectorised); NaN and infinity keep their meaning.
+@njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})
+def _steger_points(img, line, pos, slope, saturated, sigma, R):  # pragma: no cover - compiled
+    H, W = img.shape
+    n = line.size
+    out = pos.copy()
+    P = 2 * R + 1
+    inv_s2 = 1.0 / (sigma * sigma)
+    # Across the lines: the sampled Gaussian and its derivatives at -j, all scaled by one
+    # factor (as along the line) so that the Hessian's mixed and pure terms compare.
+    kv0 = np.empty(P)
+    kv1 = np.empty(P)
+    kv2 = np.empty(P)
+    e = np.empty(P)  # exp(-j^2 / 2 sigma^2): the along-line kernel's shape at delta = 0
+    for k in range(P):
+        j = k - R
+        e[k] = np.exp(-0.5 * j * j * inv_s2)
+        x = -float(j)
+        kv0[k] = e[k]
+        kv1[k] = -x * inv_s2 * e[k]
+        kv2[k] = (x * x * inv_s2 - 1.0) * inv_s2 * e[k]
+    total = kv0.sum()
+    for k in range(P):
+        kv0[k] /= total
+        kv1[k] /= total
+        kv2[k] /= total
+    g0 = np.empty(P)
+    g1 = np.empty(P)
+    g2 = np.empty(P)
+    for i in range(n):
+        if saturated[i]:
+            continue  # the saturated run's centre stays: the Taylor model of a flat top is wrong
+        p = pos[i]
+        c0 = int(np.rint(p))
+        if c0 < R or c0 >= W - R:
+            continue
+        delta = p - c0
+        # Along the line, the kernels at the fast estimate: x = delta - j, so
+        # exp(-x^2 / 2 s^2) = exp(-delta^2 / 2 s^2) exp(delta j / s^2) exp(-j^2 / 2 s^2); the
+        # first factor cancels in the normalisation, the second is a power of one exponential.
+        q = np.exp(delta * inv_s2)
+        q_inv = 1.0 / q
+        f = 1.0
+        for _ in range(R):
+            f *= q_inv
+        s0 = 0.0
+        for k in range(P):
+            g0[k] = e[k] * f
+            s0 += g0[k]
+            f *= q
+        s0 = 1.0 / s0
+        for k in range(P):
+            x = delta - (k - R)
+            g0[k] *= s0
+            g1[k] = -x * inv_s2 * g0[k]
+            g2[k] = (x * x * inv_s2 - 1.0) * inv_s2 * g0[k]
+        r = line[i]
+        rows_in = r >= R and r < H - R
+        # Along the line with the point's kernels on each row of the patch, then across the
+        # rows with the fixed ones. (Slices: indices known to be >= 0 compile to plain loads.)
+        ru = ruu = rv = ruv = rvv = r1 = r2 = 0.0
+        kr0, kr1 = (0, P) if rows_in else (R, R + 1)
+        for kr in range(kr0, kr1):
+            seg = img[r + kr - R, c0 - R : c0 + R + 1]
+            a0 = a1 = a2 = 0.0
+            for k in range(P):
+                v = np.float64(seg[k])
+                a0 += g0[k] * v
+                a1 += g1[k] * v
+                a2 += g2[k] * v
+            ru += kv0[kr] * a1
+            ruu += kv0[kr] * a2
+            rv += kv1[kr] * a0
+            ruv += kv1[kr] * a1
+            rvv += kv2[kr] * a0
+            if kr == R:
+                r1 = a1
+                r2 = a2
+        # The local background's slope along the line biases the gradient of an asymmetric
+        # profile.
+        ru -= slope[i]
+        r1 -= slope[i]
+        if rows_in:
+            # Cross direction: the eigenvector of the Hessian's most negative eigenvalue.
+            disc = np.sqrt(0.25 * (ruu - rvv) ** 2 + ruv * ruv)
+            lam = 0.5 * (ruu + rvv) - disc
+            nu = ruv
+            nv = lam - ruu
+            if abs(nu) + abs(nv) < 1e-12:  # the other form where this one degenerates
+                nu = lam - rvv
+                nv = ruv
+            norm = np.sqrt(nu * nu + nv * nv)
+            if norm > 0.0:
+                nu /= norm
+                nv /= norm
+            if lam < 0.0 and abs(nu) > 0.3:
+                # Taylor step along the normal, then slid along the stripe (tangent (-nv, nu))
+                # back onto the scan line.
+                t = -(ru * nu + rv * nv) / lam
+                on_line = t / nu  # t nu + (t nv / nu) nv, with nu^2 + nv^2 = 1
+                if abs(on_line) < 1.5:
+                    out[i] = p + on_line
+                    continue
+        # 1-D estimate along the centre row (lines at the image's top and bottom, or where
+        # the 2-D step does not apply).
+        if r2 < 0.0:
+            t1 = -r1 / r2
+            if abs(t1) < 1.5:
+                out[i] = p + t1
+    return out
+
+
+def steger_points(
+    img: NDArray, line: NDArray, pos: NDArray, slope: NDArray, saturated: NDArray, sigma: float
+) -> NDArray:
+    """Steger's centre at each fast-mode peak, as :func:`scanner.stripe.precise._refine_precise`.
+
+    Parameters
+    ----------
+    img : ndarray, shape (H, W), uint8, uint16 or float32, C-contiguous
+        Working-orientation frame (rows are scan lines).
+    line, pos, slope : ndarray, shape (N,)
+        Each peak's line, fast-mode centre along it (px) and local background slope (grey
+        levels per px).
+    saturated : ndarray, shape (N,), bool
+        Peaks that keep their fast-mode centre.
+    sigma : float
+        The smoothing Gaussian's standard deviation, px (``> 0``).
+
+    Returns
+    -------
+    ndarray, shape (N,), float64
+        The refined centres along the lines; the fast ones where neither the 2-D nor the 1-D
+        step applies.
+    """
+    if img.ndim != 2 or not img.flags.c_contiguous:
+        raise ValueError(f"img: expected a C-contiguous 2-D frame, got shape {img.shape}")
+    if img.dtype not in (np.uint8, np.uint16, np.float32) or not img.dtype.isnative:
+        raise ValueError(f"img: expected native uint8, uint16 or float32, got {img.dtype}")
+    if not sigma > 0:
+        raise ValueError(f"sigma: expected > 0, got {sigma}")
+    R = int(np.ceil(2.5 * sigma))
+    return _steger_points(
+        img,
+        np.ascontiguousarray(line, np.int64),
+        np.ascontiguousarray(pos, np.float64),
+        np.ascontiguousarray(slope, np.float64),
+        np.ascontiguousarray(saturated, np.bool_),
+        float(sigma),
+        R,
+    )

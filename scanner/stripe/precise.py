@@ -14,6 +14,7 @@ import functools
 import numpy as np
 from numpy.typing import NDArray
 
+from scanner.stripe.kernels import HAVE_NUMBA, steger_points
 from scanner.stripe.peaks import _segments
 from scanner.stripe.profile import StripeFlag, _Peaks
 
@@ -32,13 +33,31 @@ def _refine_precise(img: NDArray, peaks: _Peaks, sigma: float) -> tuple[NDArray,
 
     ``pos`` is the centre on the scan line; ``v_offset`` is 0 where the point was slid back onto
     its line and the across-line offset otherwise (kept for stripes parallel to the lines).
+    Where numba imports, the compiled kernel does it point by point
+    (:func:`scanner.stripe.kernels.steger_points`); this NumPy path stays for frames of other
+    types and for platforms without numba.
     """
+    sat = (peaks.flags & np.uint8(StripeFlag.SATURATED)) != 0
+    if (
+        HAVE_NUMBA
+        and img.dtype in (np.uint8, np.uint16, np.float32)
+        and img.dtype.isnative
+        and img.flags.c_contiguous
+    ):
+        pos = steger_points(img, peaks.line, peaks.pos, peaks.slope, sat, sigma)
+        return pos, np.zeros(pos.size)
+    return _refine_numpy(img, peaks, sigma, sat)
+
+
+def _refine_numpy(
+    img: NDArray, peaks: _Peaks, sigma: float, sat: NDArray
+) -> tuple[NDArray, NDArray]:
+    """:func:`_refine_precise` with NumPy, all points at once (``sat``: saturated peaks)."""
     H, W = img.shape
     R = int(np.ceil(2.5 * sigma))
     n = peaks.line.size
     pos = peaks.pos.copy()
     voff = np.zeros(n)
-    sat = (peaks.flags & np.uint8(StripeFlag.SATURATED)) != 0
     c0 = np.rint(pos).astype(np.int64)
     delta = pos - c0
     j = np.arange(-R, R + 1)

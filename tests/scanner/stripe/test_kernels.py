@@ -6,9 +6,9 @@ import cv2
 import numpy as np
 import pytest
 
-from scanner.stripe import fast
+from scanner.stripe import fast, precise
 from scanner.stripe.extract import StripeFlag, extract_stripe
-from scanner.stripe.kernels import HAVE_NUMBA, line_peaks
+from scanner.stripe.kernels import HAVE_NUMBA, line_peaks, steger_points
 from scanner.virtual_cell.analytic import StripeSegment, render_stripes
 
 pytestmark = pytest.mark.skipif(not HAVE_NUMBA, reason="numba is not installed")
@@ -145,6 +145,7 @@ def numpy_path(monkeypatch):
     def run(*args, **kwargs):
         with monkeypatch.context() as m:
             m.setattr(fast, "HAVE_NUMBA", False)
+            m.setattr(precise, "HAVE_NUMBA", False)
             return extract_stripe(*args, **kwargs)
 
     return run
@@ -165,6 +166,34 @@ def test_extract_stripe_gives_the_numpy_profile(kind, orientation, numpy_path):
         np.testing.assert_allclose(got.u, want.u, rtol=0, atol=1e-4)
         np.testing.assert_allclose(got.v, want.v, rtol=0, atol=1e-4)
         np.testing.assert_allclose(got.width_px, want.width_px, rtol=0, atol=1e-3)
+
+
+@pytest.mark.parametrize("sigma", [1.0, 1.5, 2.7])
+@pytest.mark.parametrize("kind", KINDS)
+def test_steger_kernel_refines_as_numpy_does(kind, sigma):
+    img, sat, hw = _frame(kind)
+    prim = fast._measure_lines(img, hw, sat)[0]
+    saturated = (prim.flags & np.uint8(StripeFlag.SATURATED)) != 0
+    got = steger_points(img, prim.line, prim.pos, prim.slope, saturated, sigma)
+    want, _ = precise._refine_numpy(img, prim, sigma, saturated)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-4)
+    # The refinement moved the centres whose patch is inside the image (not only kept the
+    # fast ones); saturated ones and those at the border keep theirs.
+    R = int(np.ceil(2.5 * sigma))
+    c0 = np.rint(prim.pos)
+    inside = (c0 >= R) & (c0 < img.shape[1] - R)
+    moved = np.abs(got - prim.pos) > 1e-6
+    if kind != "border":  # (there the primary peaks all lie at the border)
+        assert np.mean(moved[inside & ~saturated]) > 0.5
+    assert not moved[saturated | ~inside].any()
+
+
+def test_steger_kernel_refuses_what_it_cannot_refine():
+    z = np.zeros(3)
+    with pytest.raises(ValueError, match="sigma"):
+        steger_points(np.zeros((8, 40), np.uint8), z.astype(int), z, z, z.astype(bool), 0.0)
+    with pytest.raises(ValueError, match="native"):
+        steger_points(np.zeros((8, 40)), z.astype(int), z, z, z.astype(bool), 1.5)
 
 
 def test_float_frames_with_nan_keep_the_numpy_path(numpy_path):
