@@ -27,9 +27,12 @@ from scanner.stripe.profile import _FWHM_PER_SIGMA
 
 __all__ = ["HAVE_NUMBA", "line_peaks", "steger_points"]
 
-_BLOCK = 256  # pixels whose maximum is taken in one vectorised run (a multiple of 8)
+_REACH = 32  # px either side of the previous line's peak where the line's is sought first
+_SPAN = 3 * _REACH  # px of that middle part: 12 whole words, aligned
 _ONES = np.uint64(0x0101010101010101)
 _HIGHS = np.uint64(0x8080808080808080)
+# ((x >> 7) * _BYTE_INDEX) >> 56 is k for x = 0x80 << 8 k: the index of a word's flagged byte.
+_BYTE_INDEX = np.uint64(0x0001020304050607)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -42,6 +45,52 @@ def _run_max(seg):  # pragma: no cover - compiled
     return m
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _count_above(seg, level):  # pragma: no cover - compiled
+    n = 0
+    for j in range(seg.size):
+        n += np.int64(seg[j] > level)
+    return n
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _first_equal(row, words, w0, c, best):  # pragma: no cover - compiled
+    """The first index ``>= c`` of ``row`` holding ``best`` (there must be one)."""
+    if words.size:
+        # 8-bit lines of whole words: eight pixels at a time (the first word with a byte equal
+        # to the maximum; the zero-byte test is exact for the lowest such byte).
+        pattern = np.uint64(best) * _ONES
+        w = w0 + c // 8
+        while True:
+            y = words[w] ^ pattern
+            if (y - _ONES) & ~y & _HIGHS:
+                break
+            w += 1
+        c = max((w - w0) * 8, c)
+    while row[c] != best:
+        c += 1
+    return c
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _first_equal_in_span(words, w_lo, best):  # pragma: no cover - compiled
+    """The first pixel holding ``best`` in the ``_SPAN // 8`` words from ``w_lo`` (one must).
+
+    Without branches (a mispredicted loop exit costs more than the search itself): the first
+    word with a byte equal to ``best`` by a minimum over all of them, then its lowest such byte.
+    """
+    pattern = np.uint64(best) * _ONES
+    first = np.int64(_SPAN // 8)
+    for k in range(_SPAN // 8):
+        y = words[w_lo + k] ^ pattern
+        hit = (y - _ONES) & ~y & _HIGHS
+        first = min(first, np.int64(k) | (np.int64(hit == 0) << 20))
+    y = words[w_lo + first] ^ pattern
+    hit = (y - _ONES) & ~y & _HIGHS
+    lowest = hit & (~hit + np.uint64(1))  # the 0x80 bit of the lowest such byte
+    return (w_lo + first) * 8 + np.int64(((lowest >> np.uint64(7)) * _BYTE_INDEX) >> np.uint64(56))
+
+
 @njit(cache=True, nogil=True)
 def _line_peaks(img, words, step, hw, thr, search_other):  # pragma: no cover - compiled
     H, W = img.shape
@@ -49,104 +98,95 @@ def _line_peaks(img, words, step, hw, thr, search_other):  # pragma: no cover - 
     cols = np.empty(n, np.int64)
     pos = np.empty(n, np.float64)
     peak = np.empty(n, np.float32)
-    contrast = np.empty(n, np.float32)
-    slope = np.empty(n, np.float32)
+    contrast = np.zeros(n, np.float32)
+    slope = np.zeros(n, np.float32)
     width = np.empty(n, np.float32)
     near = np.zeros(n, np.bool_)
     other = np.zeros(n, np.bool_)
-    n_blocks = (W + _BLOCK - 1) // _BLOCK
-    block_max = np.empty(n_blocks, img.dtype)
+    sw_ = np.zeros(n)
+    sx_ = np.zeros(n)
+    sxx_ = np.zeros(n)
     words_per_line = W // 8
     n_core = 2 * hw + 1
     x2 = hw * (hw + 1) * (2 * hw + 1) / 3.0  # sum of x^2, x = -hw..hw
-    fwhm = _FWHM_PER_SIGMA
+    # The line's first maximum (as argmax). The stripe moves little from line to line, so each
+    # line is split into three parts, the middle one _SPAN px around the previous line's peak
+    # (aligned: the vectorised maxima run faster), and the parts' maxima taken. Where the
+    # middle part holds the maximum and the first part does not, the first maximum is found by
+    # a branch-free search of the middle part; otherwise by a search from the line's start.
+    spans = words.size > 0 and W >= _SPAN + 16
+    lo_max = (W - 8 - _SPAN) // 8 * 8
+    hint = W // 2
     for i in range(n):
         r = i * step
         row = img[r]
-        # The line's first maximum: block maxima (vectorised), the first block holding the
-        # largest, then its first pixel equal to it.
-        best = row[0]
-        best_block = 0
-        for k in range(n_blocks):
-            m = _run_max(row[k * _BLOCK : k * _BLOCK + _BLOCK])
-            block_max[k] = m
-            if m > best:
-                best = m
-                best_block = k
-        c = best_block * _BLOCK
-        if words.size:
-            # 8-bit lines of whole words: eight pixels at a time (the first word with a byte
-            # equal to the maximum; the zero-byte test is exact for the lowest such byte).
-            pattern = np.uint64(best) * _ONES
-            w = r * words_per_line + c // 8
-            while True:
-                y = words[w] ^ pattern
-                if (y - _ONES) & ~y & _HIGHS:
-                    break
-                w += 1
-            c = (w - r * words_per_line) * 8
-        while row[c] != best:
-            c += 1
+        w0 = r * words_per_line
+        if spans:
+            lo = min(max((hint - _REACH) // _REACH * _REACH, 8), lo_max)
+            hi = lo + _SPAN
+        else:
+            lo = 1
+            hi = W - 1
+        m1 = _run_max(row[:lo])
+        m2 = _run_max(row[lo:hi])
+        m3 = _run_max(row[hi:])
+        best = max(m1, max(m2, m3))
+        if spans and m1 < best and m2 == best:
+            c = _first_equal_in_span(words, w0 + lo // 8, best) - r * W
+        else:
+            c = _first_equal(row, words, w0, lo if m1 < best else 0, best)
         cols[i] = c
-
-        # Anything above the threshold outside the window c - hw .. c + hw (clipped)?
-        if search_other and best > thr:
-            lo = max(c - hw, 0)
-            hi = min(c + hw, W - 1)
-            for k in range(n_blocks):
-                if block_max[k] <= thr:
-                    continue
-                b0 = k * _BLOCK
-                b1 = min(b0 + _BLOCK, W)
-                if b1 <= lo or b0 > hi:  # wholly outside the window
-                    other[i] = True
-                    break
-                if lo > b0 and _run_max(row[b0:lo]) > thr:
-                    other[i] = True
-                    break
-                if hi + 1 < b1 and _run_max(row[hi + 1 : b1]) > thr:
-                    other[i] = True
-                    break
-
+        hint = c
         peak[i] = best
+
+        # Anything above the threshold outside the window c - hw .. c + hw (clipped)? Where
+        # the window lies in the middle part: a pixel above it in the outer parts, or more of
+        # them in the middle part than in the window (counts: no branches).
+        a = c - hw
+        b = c + hw + 1
+        if search_other and best > thr:
+            if a >= lo and b <= hi:
+                other[i] = (max(m1, m3) > thr) | (
+                    _count_above(row[lo:hi], thr) > _count_above(row[a:b], thr)
+                )
+            else:
+                other[i] = (a > 0 and _run_max(row[:a]) > thr) or (
+                    b < W and _run_max(row[b:]) > thr
+                )
+
         if c < hw + 2 or c > W - hw - 3:
             near[i] = True  # measured by _measure
-            pos[i] = c
-            contrast[i] = 0.0
-            slope[i] = 0.0
-            width[i] = np.nan
             continue
-        # Linear background through the flank pairs' means at x = -/+ (hw + 1.5). Sums of
-        # integer pixels stay integers (exact); x runs -hw..hw over win[2:-2].
+        # Linear background through the flank pairs' means at x = -/+ (hw + 1.5); the sums
+        # over x = -hw..hw (win[2:-2]); the divisions and roots in a loop of their own below.
         win = row[c - hw - 2 : c + hw + 3]
-        s0 = 0
-        s1 = 0
-        s2 = 0
+        s0 = 0.0
+        s1 = 0.0
+        s2 = 0.0
         for j in range(n_core):
-            v = win[j + 2]
-            x = j - hw
+            v = np.float64(win[j + 2])
+            x = np.float64(j - hw)
             s0 += v
             s1 += x * v
             s2 += x * x * v
-        left = 0.5 * (np.float64(win[0]) + np.float64(win[1]))
-        right = 0.5 * (np.float64(win[n_core + 2]) + np.float64(win[n_core + 3]))
-        mean = 0.5 * (left + right)
-        sl = (right - left) / (2 * hw + 3)
-        sw = s0 - n_core * mean
-        sx = s1 - x2 * sl
-        sxx = s2 - x2 * mean
-        con = np.float64(best) - mean
-        if not sw > 0.0:
-            sw = 1.0
-            con = 0.0
-        mu = sx / sw
-        var = sxx / sw - mu * mu
-        if var < 0.0:
-            var = 0.0
-        pos[i] = c + mu
-        contrast[i] = con
+        left = np.float64(win[0]) + np.float64(win[1])
+        right = np.float64(win[n_core + 2]) + np.float64(win[n_core + 3])
+        mean = 0.25 * (left + right)
+        sl = 0.5 * (right - left) / (2 * hw + 3)
+        sw_[i] = s0 - n_core * mean
+        sx_[i] = s1 - x2 * sl
+        sxx_[i] = s2 - x2 * mean
+        contrast[i] = np.float64(best) - mean
         slope[i] = sl
-        width[i] = fwhm * np.sqrt(var)
+    for i in range(n):
+        sw = sw_[i]
+        ok = sw > 0.0 or near[i]
+        sw = sw if sw > 0.0 else 1.0
+        mu = sx_[i] / sw
+        var = max(sxx_[i] / sw - mu * mu, 0.0)
+        pos[i] = cols[i] + mu
+        contrast[i] = contrast[i] if ok else 0.0
+        width[i] = np.nan if near[i] else _FWHM_PER_SIGMA * np.sqrt(var)
     return cols, pos, peak, contrast, slope, width, near, other
 
 
