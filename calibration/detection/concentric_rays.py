@@ -33,7 +33,11 @@ def _darkness(img: NDArray, kernel_px: int) -> tuple[NDArray, NDArray]:
     k = int(kernel_px) | 1
     se = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
     img32 = img.astype(np.float32)
-    bg = cv2.morphologyEx(img32, cv2.MORPH_CLOSE, se)
+    if img.dtype in (np.uint8, np.uint16):
+        # The same values as in float32 (a closing only picks pixels), 2-4 times faster.
+        bg = cv2.morphologyEx(img, cv2.MORPH_CLOSE, se).astype(np.float32)
+    else:
+        bg = cv2.morphologyEx(img32, cv2.MORPH_CLOSE, se)
     bg = np.maximum(bg, img32)
     d = 1.0 - img32 / np.maximum(bg, 1e-6)
     d[bg < 0.3 * _lit_level(bg)] = 0.0

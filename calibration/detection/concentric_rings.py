@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from calibration.detection.conics import fit_conic, fit_line, pencil_center, sampson_distances
+from calibration.detection.ray_kernels import cubic_spline_at
 
 __all__ = ["ConcentricDetectorSettings"]
 
@@ -60,8 +61,7 @@ def _locate_centres(
     tau = np.arange(-span, span + step / 2, step)
     u = points[:, 0:1] + normals[:, 0:1] * tau[None, :]
     v = points[:, 1:2] + normals[:, 1:2] * tau[None, :]
-    prof = ndimage.map_coordinates(coef, [v.ravel(), u.ravel()], order=3, prefilter=False)
-    prof = prof.reshape(u.shape)
+    prof = cubic_spline_at(coef, v, u)
     inside = np.abs(tau) <= search
     start = np.where(inside[None, :], prof, -np.inf).argmax(axis=1)
     c = tau[start]

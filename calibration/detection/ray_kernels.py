@@ -1,4 +1,4 @@
-"""Compiled kernel of the coarse ring labelling: every ray's first crossings in one pass.
+"""Compiled kernels of the ring detector: the coarse labelling's rays, the fine stage's samples.
 
 :func:`label_rays` samples the darkness map along all rays from a candidate centre
 (bilinear, every pixel, each ray only as far as its crossings go), takes the maxima of the runs
@@ -7,6 +7,10 @@ diameter lines and is skipped), fits the first ones to the 1-D projectivity
 ``t = a r / (1 + b r)`` of the known radii and gives the fit's largest residual. Candidate
 centres are many (every crossing of two long lines, at several scales), so this loop was
 most of the detector's time.
+
+:func:`cubic_spline_at` samples a cubic-spline coefficient image at scattered points, as
+:func:`scipy.ndimage.map_coordinates` does (``order=3, prefilter=False``, ``mode="constant"``)
+to rounding, 4-5 times faster on the fine stage's profiles across the rings.
 
 Compiled with numba where it imports (:data:`HAVE_NUMBA`); without it the same code runs as
 Python (slowly, but with the same results).
@@ -19,7 +23,7 @@ from numpy.typing import NDArray
 
 from scanner.core.jit import HAVE_NUMBA, njit
 
-__all__ = ["HAVE_NUMBA", "label_rays"]
+__all__ = ["HAVE_NUMBA", "cubic_spline_at", "label_rays"]
 
 
 @njit(cache=True, nogil=True)
@@ -173,3 +177,99 @@ def label_rays(
         np.ascontiguousarray(radii, dtype=np.float64),
         float(thr),
     )
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _mirror(i, n):  # pragma: no cover - compiled
+    """Index ``i`` folded into ``0 .. n - 1`` by mirroring about the end samples."""
+    if n == 1:
+        return 0
+    period = 2 * n - 2
+    i = abs(i) % period
+    return period - i if i >= n else i
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _bspline3_weights(f):  # pragma: no cover - compiled
+    """The cubic B-spline's weights of the samples at offsets -1, 0, 1, 2 from ``floor``."""
+    f2 = f * f
+    f3 = f2 * f
+    return (
+        (1.0 - f) ** 3 / 6.0,
+        (3.0 * f3 - 6.0 * f2 + 4.0) / 6.0,
+        (-3.0 * f3 + 3.0 * f2 + 3.0 * f + 1.0) / 6.0,
+        f3 / 6.0,
+    )
+
+
+@njit(cache=True, nogil=True)
+def _spline_at(coef, v, u, cval):  # pragma: no cover - compiled
+    h, w = coef.shape
+    out = np.empty(v.size)
+    for k in range(v.size):
+        y = v[k]
+        x = u[k]
+        if not (y >= 0.0 and y <= h - 1.0 and x >= 0.0 and x <= w - 1.0):
+            out[k] = cval  # (NaN too)
+            continue
+        iy = int(np.floor(y))
+        ix = int(np.floor(x))
+        wy0, wy1, wy2, wy3 = _bspline3_weights(y - iy)
+        wx0, wx1, wx2, wx3 = _bspline3_weights(x - ix)
+        if iy >= 1 and iy <= h - 3 and ix >= 1 and ix <= w - 3:
+            # All 16 coefficients inside (the common case): slices, no folding.
+            r0 = coef[iy - 1, ix - 1 : ix + 3]
+            r1 = coef[iy, ix - 1 : ix + 3]
+            r2 = coef[iy + 1, ix - 1 : ix + 3]
+            r3 = coef[iy + 2, ix - 1 : ix + 3]
+            out[k] = (
+                wy0 * (wx0 * r0[0] + wx1 * r0[1] + wx2 * r0[2] + wx3 * r0[3])
+                + wy1 * (wx0 * r1[0] + wx1 * r1[1] + wx2 * r1[2] + wx3 * r1[3])
+                + wy2 * (wx0 * r2[0] + wx1 * r2[1] + wx2 * r2[2] + wx3 * r2[3])
+                + wy3 * (wx0 * r3[0] + wx1 * r3[1] + wx2 * r3[2] + wx3 * r3[3])
+            )
+            continue
+        c0 = _mirror(ix - 1, w)
+        c1 = _mirror(ix, w)
+        c2 = _mirror(ix + 1, w)
+        c3 = _mirror(ix + 2, w)
+        s = 0.0
+        for a in range(4):
+            row = coef[_mirror(iy - 1 + a, h)]
+            wy = wy0 if a == 0 else wy1 if a == 1 else wy2 if a == 2 else wy3
+            s += wy * (wx0 * row[c0] + wx1 * row[c1] + wx2 * row[c2] + wx3 * row[c3])
+        out[k] = s
+    return out
+
+
+def cubic_spline_at(coef: NDArray, v: NDArray, u: NDArray, cval: float = 0.0) -> NDArray:
+    """The cubic spline with coefficients ``coef`` at the points ``(u, v)``.
+
+    The same values as ``scipy.ndimage.map_coordinates(coef, [v, u], order=3,
+    prefilter=False, mode="constant", cval=cval)`` (to rounding): the coefficients mirrored
+    about the edge samples, ``cval`` outside ``0 <= v <= H - 1``, ``0 <= u <= W - 1``.
+
+    Parameters
+    ----------
+    coef : ndarray, shape (H, W)
+        Spline coefficients (:func:`scipy.ndimage.spline_filter` of an image, order 3).
+    v, u : ndarray, any shape (the same)
+        Row and column of each point, px.
+    cval : float
+        The value outside the image.
+
+    Returns
+    -------
+    ndarray, the shape of ``v``, float64
+    """
+    c = np.ascontiguousarray(coef, dtype=np.float64)
+    if c.ndim != 2:
+        raise ValueError(f"coef: expected shape (H, W), got {c.shape}")
+    v = np.asarray(v, dtype=np.float64)
+    u = np.asarray(u, dtype=np.float64)
+    if v.shape != u.shape:
+        raise ValueError(f"v, u: expected one shape, got {v.shape} and {u.shape}")
+    out = _spline_at(
+        c, np.ascontiguousarray(v).reshape(-1), np.ascontiguousarray(u).reshape(-1), float(cval)
+    )
+    return out.reshape(v.shape)

@@ -1,12 +1,14 @@
-"""The compiled ray labelling against a plain per-ray reference, and on a drawn target."""
+"""The compiled ray labelling against a plain per-ray reference, and on a drawn target; the
+compiled spline sampler against scipy's."""
 
 from __future__ import annotations
 
 import cv2
 import numpy as np
+import pytest
 from scipy import ndimage
 
-from calibration.detection.ray_kernels import label_rays
+from calibration.detection.ray_kernels import cubic_spline_at, label_rays
 
 
 def _reference(d: np.ndarray, c: np.ndarray, angle: float, radii: np.ndarray, thr: float):
@@ -111,3 +113,27 @@ def test_a_ray_ends_where_the_print_is_hidden_and_starts_where_it_leaves_it():
     cv2.circle(spot, (190, 160), int(0.7 * peaks[0, 0]), -1.0, -1)
     count_s, _, _ = label_rays(spot, centre, angles, radii, 0.3)
     assert np.all(count_s == 0)
+
+
+@pytest.mark.parametrize("shape", [(60, 80), (5, 7), (1, 9)])
+def test_cubic_spline_at_gives_scipys_values_inside_at_the_edges_and_outside(shape):
+    rng = np.random.default_rng(31)
+    coef = ndimage.spline_filter(rng.random(shape), order=3)
+    h, w = shape
+    v = rng.uniform(-3, h + 2, 4998)
+    u = rng.uniform(-3, w + 2, 4998)
+    # The edges exactly, just inside and just outside, and NaN.
+    v = np.concatenate([v, [0.0, h - 1.0, -1e-12, h - 1 + 1e-12, 0.5 * h, 0.5 * h, np.nan]])
+    u = np.concatenate([u, [0.5 * w, 0.5 * w, 1.0, 1.0, 0.0, w - 1.0, 1.0]])
+    want = ndimage.map_coordinates(coef, [v, u], order=3, prefilter=False, cval=-2.0)
+    got = cubic_spline_at(coef, v.reshape(-1, 7), u.reshape(-1, 7), cval=-2.0)
+    assert got.shape == (len(v) // 7, 7)
+    np.testing.assert_allclose(got.reshape(-1), want, rtol=0, atol=1e-12)
+    assert np.count_nonzero(want != -2.0) > 1000 or h < 10  # not all outside
+
+
+def test_cubic_spline_at_refuses_mismatched_points():
+    with pytest.raises(ValueError, match="v, u"):
+        cubic_spline_at(np.zeros((4, 4)), np.zeros(3), np.zeros(4))
+    with pytest.raises(ValueError, match="coef"):
+        cubic_spline_at(np.zeros(4), np.zeros(3), np.zeros(3))
