@@ -49,7 +49,7 @@ from scanner.stripe.estimates import _median, auto_half_window, estimate_noise
 from scanner.stripe.fast import _measure_many as _measure_many  # for benchmarks/bench_stripe.py
 from scanner.stripe.fast import _saturation_level
 from scanner.stripe.orientation import orientation_from_calibration, orientation_from_image
-from scanner.stripe.peaks import _primary_and_secondary, _resolve_multi
+from scanner.stripe.peaks import _primary_and_secondary, _resolve_multi, _stretch_ends
 from scanner.stripe.precise import _curvature_shift, _refine_precise
 from scanner.stripe.profile import (
     _FWHM_PER_SIGMA,
@@ -162,6 +162,10 @@ def extract_stripe(
         low = peaks.contrast < opts.low_contrast_ratio * typical
         if low.any():
             peaks.flags[low] |= np.uint8(StripeFlag.LOW_CONTRAST)
+
+    ends = _stretch_ends(peaks, opts.link_px, work.shape[0], int(opts.end_lines))
+    if ends.any():
+        peaks.flags[ends] |= np.uint8(StripeFlag.STRETCH_END)
 
     pos = peaks.pos
     across = peaks.line.astype(np.float64)

@@ -198,6 +198,33 @@ def _segments(peaks: _Peaks, link_px: float) -> NDArray:
     return labels
 
 
+def _stretch_ends(peaks: _Peaks, link_px: float, n_lines: int, end_lines: int) -> NDArray:
+    """Peaks fewer than ``end_lines`` lines from the end of their run of linked peaks.
+
+    A run is a chain of peaks on consecutive lines within ``link_px`` of each other (one
+    missing line is bridged, as noise drops a peak now and then); its end at the image's
+    first or last line is not an end (the stripe goes on outside).
+    """
+    n = peaks.line.size
+    near = np.zeros(n, bool)
+    if n == 0 or end_lines <= 0:
+        return near
+    line = peaks.line
+    if np.all(line[1:] > line[:-1]):  # one peak per line, in line order: runs by differences
+        gap = np.diff(line)
+        linked = (gap <= 2) & (np.abs(np.diff(peaks.pos)) <= link_px * gap)
+        run = np.concatenate([[0], np.cumsum(~linked)])
+    else:
+        run = _segments(peaks, link_px)
+    first = np.full(run.max() + 1, n_lines, np.int64)
+    last = np.full(run.max() + 1, -1, np.int64)
+    np.minimum.at(first, run, line)
+    np.maximum.at(last, run, line)
+    to_first = np.where(first[run] > 0, line - first[run], end_lines)
+    to_last = np.where(last[run] < n_lines - 1, last[run] - line, end_lines)
+    return np.minimum(to_first, to_last) < end_lines
+
+
 def _resolve_multi(peaks: _Peaks, options: StripeOptions) -> _Peaks:
     """Drop reflections, flag ambiguity and secondary segments on lines with several peaks."""
     n = peaks.line.size

@@ -38,6 +38,10 @@ class StripeFlag(IntFlag):
     """Not the brightest peak of its line: another stripe segment sharing the line."""
     GRAZING = 32
     """Set by scanning: the surface is seen or lit beyond the incidence limit."""
+    STRETCH_END = 64
+    """Within ``end_lines`` lines of where its run of linked peaks ends inside the image: the
+    stripe there is cut by a depth jump, a shadow or an object's edge, and the centre mixes
+    what lies on both sides (mixed pixels; on the virtual cell 3-4 times the error inside)."""
 
 
 @dataclass(frozen=True)
@@ -73,6 +77,9 @@ class StripeOptions:
         Contrast below this fraction of the frame's median stripe contrast sets LOW_CONTRAST.
     keep_reflections : bool
         Keep the peaks judged to be reflections (flagged AMBIGUOUS) instead of dropping them.
+    end_lines : int
+        Peaks fewer than this many lines from the end of their run of linked peaks (a run
+        ending at the image's first or last line does not end there) get STRETCH_END; 0: none.
     """
 
     half_window_px: int | None = None
@@ -87,6 +94,7 @@ class StripeOptions:
     reflection_ratio: float = 0.6
     low_contrast_ratio: float = 0.25
     keep_reflections: bool = False
+    end_lines: int = 3
 
     def __post_init__(self) -> None:
         if self.half_window_px is not None and int(self.half_window_px) < 2:
@@ -97,6 +105,8 @@ class StripeOptions:
             raise ValueError(f"k_noise: expected > 0, got {self.k_noise}")
         if not 0.0 <= self.min_relative_peak <= 1.0:
             raise ValueError(f"min_relative_peak: expected 0..1, got {self.min_relative_peak}")
+        if int(self.end_lines) < 0:
+            raise ValueError(f"end_lines: expected >= 0, got {self.end_lines}")
 
 
 @dataclass(frozen=True)

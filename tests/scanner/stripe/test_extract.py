@@ -7,6 +7,7 @@ import pytest
 
 from scanner.stripe.extract import (
     StripeFlag,
+    StripeOptions,
     StripeProfile,
     extract_stripe,
     orientation_from_calibration,
@@ -278,6 +279,56 @@ def test_virtual_cell_frame_with_speckle_is_speckle_limited():
     table = clean & ok & (surface[nearest] == "table")
     # Speckle (contrast 0.25) moves the centres by ~0.1 px, correlated along the stripe.
     assert np.sqrt(np.mean(err[table] ** 2)) < 0.15
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["fast", "precise"])
+def test_stretch_ends_carry_the_mixed_pixels_and_are_flagged(mode):
+    """On sweep frames of the virtual cell (a plate, a bar, spheres on the table), the
+    points the flag marks lie where the stripe is cut, and their error against the truth is
+    several times that of the clean points."""
+    vc = pytest.importorskip("scanner.virtual_cell.capture")
+    from scanner.virtual_cell.cell import load_cell
+    from scanner.virtual_cell.poses import sweep_poses
+
+    cell = load_cell("modern")
+    base_from_cam, _ = sweep_poses(cell, 400)
+    errs: dict[str, list[np.ndarray]] = {"end": [], "clean": []}
+    for i in (100, 130, 160, 200, 230, 260, 290):
+        img, truth = vc.render_laser_image(cell, base_from_cam[i], np.random.default_rng(i))
+        p = extract_stripe(img, mode=mode, orientation="auto")
+        err, dist, _, ok = _cell_errors(p, truth.uv)
+        ok &= dist < 2.0
+        end = (p.flags & StripeFlag.STRETCH_END) != 0
+        errs["end"].append(err[ok & (p.flags == StripeFlag.STRETCH_END)])
+        errs["clean"].append(err[ok & (p.flags == 0)])
+        assert 0 < end.sum() < 0.05 * len(p)  # a few lines at each cut, not the stripe
+    rms = {k: float(np.sqrt(np.mean(np.concatenate(v) ** 2))) for k, v in errs.items()}
+    n_end = sum(len(v) for v in errs["end"])
+    assert n_end > 40
+    # (0.43 px against 0.11 px in both modes)
+    assert rms["end"] > 2.0 * rms["clean"], (rms, n_end)
+
+
+def test_stretch_end_flag_marks_the_lines_at_a_depth_jump_only():
+    # One stripe jumping 60 px at line 120 (a depth step), a one-line dropout at line 60, and
+    # the image's first and last lines (the stripe goes on outside: no end there).
+    segs = [
+        StripeSegment((0, 60), (150.0, 0.05), amplitude=170.0),
+        StripeSegment((61, 120), (150.0, 0.05), amplitude=170.0),
+        StripeSegment((120, 240), (210.0, 0.05), amplitude=170.0),
+    ]
+    img, _ = render_stripes(SHAPE, segs, noise=1.0, seed=4)
+    for mode in ("fast", "precise"):
+        p = extract_stripe(img, mode=mode, orientation="rows")
+        end = (p.flags & StripeFlag.STRETCH_END) != 0
+        assert sorted(p.line[end].tolist()) == [117, 118, 119, 120, 121, 122]
+        p0 = extract_stripe(img, mode=mode, orientation="rows", end_lines=0)
+        assert not np.any(p0.flags & StripeFlag.STRETCH_END)
+        p5 = extract_stripe(img, mode=mode, orientation="rows", end_lines=5)
+        assert np.count_nonzero(p5.flags & StripeFlag.STRETCH_END) == 10
+    with pytest.raises(ValueError, match="end_lines"):
+        StripeOptions(end_lines=-1)
 
 
 @pytest.mark.parametrize("curvature", [0.01, 0.02])
