@@ -1,0 +1,115 @@
+"""Stretch ends (StripeFlag.STRETCH_END): how far off they are, and what leaving them out does.
+
+Two tables, on the sweep (seed 0) of the modern cell and of randomised sensor 0
+(:func:`scanner.virtual_cell.random_cell.randomised_cell`):
+
+* in the image: each extracted point's error along its scan line against the rendered truth,
+  for the points the flag marks and for the clean ones (no flag at all), every 4th frame;
+* in the cloud as ``scanner scan`` writes it (true calibration) with ``end_lines`` 0 (no flag)
+  and the given values: the spheres' figures as :func:`bench_laser_origin.cloud_sphere_figures`
+  gives them, and the plate top's tilt and noise (points within 0.5 mm of its true plane).
+
+    python benchmarks/bench_stretch_ends.py [--work /tmp/bench_stretch_ends] [--end-lines 3 6]
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+from bench_laser_origin import cloud_sphere_figures
+from scipy.spatial import cKDTree
+
+from scanner.app import stages
+from scanner.formats.clouds import cloud_arrays, read_cloud
+from scanner.formats.session import read_session
+from scanner.scanning.pipeline import ScanOptions
+from scanner.stripe.extract import extract_stripe
+from scanner.stripe.profile import StripeFlag, StripeOptions
+from scanner.virtual_cell.cell import load_cell
+from scanner.virtual_cell.random_cell import randomised_cell
+from scanner.virtual_cell.truth import CellTruth, StripeTable, read_truth
+
+
+def image_errors(sim: Path, every: int = 4) -> dict[str, tuple[int, float]]:
+    """Points and RMS error (px) along the scan line: flagged STRETCH_END only, and clean."""
+    session = read_session(sim / "sweep")
+    table = StripeTable.load(sim / "sweep_stripes.npz")
+    errs: dict[str, list[np.ndarray]] = {"stretch end": [], "clean": []}
+    for f in session.frames[::every]:
+        p = extract_stripe(session.load_laser_image(f), mode="precise", orientation="auto")
+        uv_true, _ = table.of_frame(f.id)
+        if len(p) < 2 or len(uv_true) < 2:
+            continue
+        a = 0 if p.orientation == "rows" else 1  # the coordinate along the scan line
+        b = 1 - a
+        dist, k = cKDTree(uv_true).query(p.uv, k=2)
+        p1, p2 = uv_true[k[:, 0]], uv_true[k[:, 1]]
+        step = p2[:, b] - p1[:, b]
+        ok = (np.abs(step) > 1e-6) & (dist[:, 0] < 2.0)
+        along = p1[:, a] + (p.uv[:, b] - p1[:, b]) * (p2[:, a] - p1[:, a]) / np.where(ok, step, 1.0)
+        e = p.uv[:, a] - along
+        errs["stretch end"].append(e[ok & (p.flags == StripeFlag.STRETCH_END)])
+        errs["clean"].append(e[ok & (p.flags == 0)])
+    out = {}
+    for name, parts in errs.items():
+        e = np.concatenate(parts)
+        out[name] = (e.size, float(np.sqrt(np.mean(e**2))) if e.size else float("nan"))
+    return out
+
+
+def plate_figures(cloud_path: Path, truth: CellTruth) -> tuple[float, float]:
+    """The plate top's fitted tilt against the truth (deg) and its points' noise (mm)."""
+    points = cloud_arrays(read_cloud(cloud_path))["positions"]
+    plate = next(o for o in truth.objects if o.type == "box")
+    n = np.asarray(plate.params["top_plane"]["normal"], dtype=np.float64)
+    d = float(plate.params["top_plane"]["d"])
+    q = points[np.abs(points @ n + d) < 0.5]
+    c = q.mean(axis=0)
+    normal = np.linalg.svd(q - c, full_matrices=False)[2][2]
+    res = (q - c) @ normal
+    sigma = 1.4826 * float(np.median(np.abs(res - np.median(res))))
+    return float(np.degrees(np.arccos(min(1.0, abs(normal @ n))))), sigma
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--work", type=Path, default=Path("/tmp/bench_stretch_ends"))
+    ap.add_argument("--end-lines", type=int, nargs="*", default=[3, 6])
+    args = ap.parse_args()
+    cells = {
+        "modern": load_cell("modern"),
+        "randomised 0": randomised_cell(load_cell("modern"), np.random.default_rng(10_000)),
+    }
+    for name, cell in cells.items():
+        folder = args.work / name.replace(" ", "-")
+        sim = folder / "sim"
+        if not (sim / "truth.json").is_file():
+            stages.simulate(cell, sim, seed=0, sessions=("sweep",), workers=2)
+        truth = read_truth(sim / "truth.json")
+        print(f"\n{name}: precise mode, every 4th sweep frame, error along the scan line")
+        print("| points | count | RMS px |\n|---|---:|---:|")
+        for kind, (count, rms) in image_errors(sim).items():
+            print(f"| {kind} | {count} | {rms:.3f} |")
+        figures = {}
+        for k in [0, *args.end_lines]:
+            cloud = folder / f"cloud_end{k}.ply"
+            if not cloud.is_file():
+                options = ScanOptions(stripe=StripeOptions(end_lines=k))
+                stages.scan([sim / "sweep"], sim / "calibration_true.json", cloud, options=options)
+            f = cloud_sphere_figures(cloud, truth)
+            f["plate tilt deg"], f["plate noise sigma"] = plate_figures(cloud, truth)
+            figures[f"end_lines {k}"] = f
+        runs = list(figures)
+        print(f"\n{name}: the cloud as written (default scan, true calibration)")
+        print("| figure | " + " | ".join(runs) + " |\n|---|" + "---:|" * len(runs))
+        for key in figures[runs[0]]:
+            if "noise alone" in key:
+                continue
+            fmt = "{:.0f}" if key.endswith("points") else "{:+.4f}"
+            print(f"| {key} | " + " | ".join(fmt.format(figures[r][key]) for r in runs) + " |")
+
+
+if __name__ == "__main__":
+    main()
