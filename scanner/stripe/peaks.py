@@ -15,6 +15,7 @@ from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from scanner.core.jit import njit
 from scanner.stripe.estimates import _median
 from scanner.stripe.fast import _measure_lines, _measure_many, _saturation_level
 from scanner.stripe.profile import StripeFlag, StripeOptions, _Peaks
@@ -171,24 +172,25 @@ def _dedupe(peaks: _Peaks, hw: int) -> _Peaks:
     return out
 
 
-def _segments(peaks: _Peaks, link_px: float) -> NDArray:
-    """Segment label per peak: chains of peaks on consecutive lines within ``link_px``."""
+def _segments(peaks: _Peaks, link_px: float, max_gap: int = 1) -> NDArray:
+    """Segment label per peak (``0 .. k - 1``): chains of peaks on lines at most ``max_gap``
+    apart (1: consecutive lines) within ``link_px`` per line of each other."""
     n = peaks.line.size
     order = np.lexsort((peaks.pos, peaks.line))
     line = peaks.line[order]
     pos = peaks.pos[order]
-    # Nearest peak on the previous line, via a sorted key line * big + pos.
-    big = float(max(1e6, pos.max() + 10 * link_px + 1))
+    # Nearest peak on an earlier line, via a sorted key line * big + pos.
+    big = float(max(1e6, pos.max() + 10 * max_gap * link_px + 1))
     key = line * big + pos
-    target = (line - 1) * big + pos
-    j = np.searchsorted(key, target)
     src, dst = [], []
-    for cand in (j - 1, j):
-        ok = (cand >= 0) & (cand < n)
-        cc = np.clip(cand, 0, n - 1)
-        ok &= (line[cc] == line - 1) & (np.abs(pos[cc] - pos) <= link_px)
-        src.append(np.flatnonzero(ok))
-        dst.append(cc[ok])
+    for gap in range(1, max_gap + 1):
+        j = np.searchsorted(key, (line - gap) * big + pos)
+        for cand in (j - 1, j):
+            ok = (cand >= 0) & (cand < n)
+            cc = np.clip(cand, 0, n - 1)
+            ok &= (line[cc] == line - gap) & (np.abs(pos[cc] - pos) <= gap * link_px)
+            src.append(np.flatnonzero(ok))
+            dst.append(cc[ok])
     s = np.concatenate(src)
     d = np.concatenate(dst)
     graph = coo_matrix((np.ones(s.size), (s, d)), shape=(n, n))
@@ -210,19 +212,37 @@ def _stretch_ends(peaks: _Peaks, link_px: float, n_lines: int, end_lines: int) -
     if n == 0 or end_lines <= 0:
         return near
     line = peaks.line
-    if np.all(line[1:] > line[:-1]):  # one peak per line, in line order: runs by differences
-        gap = np.diff(line)
-        linked = (gap <= 2) & (np.abs(np.diff(peaks.pos)) <= link_px * gap)
-        run = np.concatenate([[0], np.cumsum(~linked)])
-    else:
-        run = _segments(peaks, link_px)
-    first = np.full(run.max() + 1, n_lines, np.int64)
-    last = np.full(run.max() + 1, -1, np.int64)
-    np.minimum.at(first, run, line)
-    np.maximum.at(last, run, line)
-    to_first = np.where(first[run] > 0, line - first[run], end_lines)
-    to_last = np.where(last[run] < n_lines - 1, last[run] - line, end_lines)
+    if np.all(line[1:] > line[:-1]):  # one peak per line, in line order: one pass
+        return _line_run_ends(line, peaks.pos, float(link_px), int(n_lines), int(end_lines))
+    run = _segments(peaks, link_px, max_gap=2)
+    order = np.argsort(run, kind="stable")
+    starts = np.concatenate([[0], np.flatnonzero(np.diff(run[order])) + 1])
+    first = np.minimum.reduceat(line[order], starts)[run]
+    last = np.maximum.reduceat(line[order], starts)[run]
+    to_first = np.where(first > 0, line - first, end_lines)
+    to_last = np.where(last < n_lines - 1, last - line, end_lines)
     return np.minimum(to_first, to_last) < end_lines
+
+
+@njit(cache=True, nogil=True)
+def _line_run_ends(line, pos, link_px, n_lines, end_lines):  # pragma: no cover - compiled
+    """:func:`_stretch_ends` for one peak per line, in line order."""
+    n = line.size
+    out = np.zeros(n, np.bool_)
+    start = 0
+    for i in range(1, n + 1):
+        if i < n:
+            gap = line[i] - line[i - 1]
+            if gap <= 2 and abs(pos[i] - pos[i - 1]) <= link_px * gap:
+                continue
+        first = line[start]
+        last = line[i - 1]
+        for j in range(start, i):
+            to_first = line[j] - first if first > 0 else end_lines
+            to_last = last - line[j] if last < n_lines - 1 else end_lines
+            out[j] = min(to_first, to_last) < end_lines
+        start = i
+    return out
 
 
 def _resolve_multi(peaks: _Peaks, options: StripeOptions) -> _Peaks:

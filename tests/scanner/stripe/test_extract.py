@@ -327,6 +327,14 @@ def test_stretch_end_flag_marks_the_lines_at_a_depth_jump_only():
         assert not np.any(p0.flags & StripeFlag.STRETCH_END)
         p5 = extract_stripe(img, mode=mode, orientation="rows", end_lines=5)
         assert np.count_nonzero(p5.flags & StripeFlag.STRETCH_END) == 10
+    # A second stripe sharing lines 30-89 (several peaks per line: runs by linking).
+    segs.append(StripeSegment((30, 90), (280.0, 0.0), amplitude=150.0))
+    img, _ = render_stripes(SHAPE, segs, noise=1.0, seed=4)
+    p = extract_stripe(img, mode="fast", orientation="rows")
+    end = (p.flags & StripeFlag.STRETCH_END) != 0
+    second = p.u > 250
+    assert sorted(p.line[end & ~second].tolist()) == [117, 118, 119, 120, 121, 122]
+    assert sorted(p.line[end & second].tolist()) == [30, 31, 32, 87, 88, 89]
     with pytest.raises(ValueError, match="end_lines"):
         StripeOptions(end_lines=-1)
 
