@@ -174,7 +174,8 @@ def test_steger_kernel_refines_as_numpy_does(kind, sigma):
     img, sat, hw = _frame(kind)
     prim = fast._measure_lines(img, hw, sat)[0]
     saturated = (prim.flags & np.uint8(StripeFlag.SATURATED)) != 0
-    got = steger_points(img, prim.line, prim.pos, prim.slope, saturated, sigma)
+    level = prim.peak - prim.contrast
+    got = steger_points(img, prim.line, prim.pos, prim.slope, level, saturated, sigma)
     want, _ = precise._refine_numpy(img, prim, sigma, saturated)
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-4)
     # The refinement moved the centres whose patch is inside the image (not only kept the
@@ -191,9 +192,9 @@ def test_steger_kernel_refines_as_numpy_does(kind, sigma):
 def test_steger_kernel_refuses_what_it_cannot_refine():
     z = np.zeros(3)
     with pytest.raises(ValueError, match="sigma"):
-        steger_points(np.zeros((8, 40), np.uint8), z.astype(int), z, z, z.astype(bool), 0.0)
+        steger_points(np.zeros((8, 40), np.uint8), z.astype(int), z, z, z, z.astype(bool), 0.0)
     with pytest.raises(ValueError, match="native"):
-        steger_points(np.zeros((8, 40)), z.astype(int), z, z, z.astype(bool), 1.5)
+        steger_points(np.zeros((8, 40)), z.astype(int), z, z, z, z.astype(bool), 1.5)
 
 
 def test_float_frames_with_nan_keep_the_numpy_path(numpy_path):
