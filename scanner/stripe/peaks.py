@@ -203,45 +203,63 @@ def _segments(peaks: _Peaks, link_px: float, max_gap: int = 1) -> NDArray:
 def _stretch_ends(peaks: _Peaks, link_px: float, n_lines: int, end_lines: int) -> NDArray:
     """Peaks fewer than ``end_lines`` lines from the end of their run of linked peaks.
 
-    A run is a chain of peaks on consecutive lines within ``link_px`` of each other (one
-    missing line is bridged, as noise drops a peak now and then); its end at the image's
-    first or last line is not an end (the stripe goes on outside).
+    A run is a chain of peaks on lines at most 2 apart (noise drops a peak now and then, or
+    puts a stray one beside the stripe) within ``link_px`` per line of each other. A run that
+    reaches the image's first or last line, or the line next to it, does not end there (the
+    stripe goes on outside).
     """
     n = peaks.line.size
-    near = np.zeros(n, bool)
     if n == 0 or end_lines <= 0:
-        return near
+        return np.zeros(n, bool)
     line = peaks.line
-    if np.all(line[1:] > line[:-1]):  # one peak per line, in line order: one pass
+    if np.all(line[1:] > line[:-1]):  # one peak per line, in line order: one compiled pass
         return _line_run_ends(line, peaks.pos, float(link_px), int(n_lines), int(end_lines))
-    run = _segments(peaks, link_px, max_gap=2)
+    run = _segments(peaks, link_px, max_gap=2)  # labels 0 .. k - 1
     order = np.argsort(run, kind="stable")
     starts = np.concatenate([[0], np.flatnonzero(np.diff(run[order])) + 1])
     first = np.minimum.reduceat(line[order], starts)[run]
     last = np.maximum.reduceat(line[order], starts)[run]
-    to_first = np.where(first > 0, line - first, end_lines)
-    to_last = np.where(last < n_lines - 1, last - line, end_lines)
+    to_first = np.where(first > 1, line - first, end_lines)
+    to_last = np.where(last < n_lines - 2, last - line, end_lines)
     return np.minimum(to_first, to_last) < end_lines
 
 
 @njit(cache=True, nogil=True)
 def _line_run_ends(line, pos, link_px, n_lines, end_lines):  # pragma: no cover - compiled
-    """:func:`_stretch_ends` for one peak per line, in line order."""
+    """:func:`_stretch_ends` for one peak per line in line order: the runs linked as
+    :func:`_segments` links them with ``max_gap=2`` (union-find over the two previous peaks),
+    each run's first and last line, the distances to them."""
     n = line.size
+    parent = np.arange(n)
+    for i in range(1, n):
+        for j in range(max(i - 2, 0), i):
+            gap = line[i] - line[j]
+            if gap <= 2 and abs(pos[i] - pos[j]) <= link_px * gap:
+                a = i
+                while parent[a] != a:
+                    a = parent[a]
+                b = j
+                while parent[b] != b:
+                    b = parent[b]
+                if a != b:
+                    parent[max(a, b)] = min(a, b)
+    root = np.empty(n, np.int64)
+    first = np.empty(n, np.int64)  # per root (the run's lowest index: its first line)
+    last = np.empty(n, np.int64)
+    for i in range(n):
+        r = i
+        while parent[r] != r:
+            r = parent[r]
+        root[i] = r
+        if r == i:
+            first[i] = line[i]
+        last[r] = line[i]  # lines increase with the index
     out = np.zeros(n, np.bool_)
-    start = 0
-    for i in range(1, n + 1):
-        if i < n:
-            gap = line[i] - line[i - 1]
-            if gap <= 2 and abs(pos[i] - pos[i - 1]) <= link_px * gap:
-                continue
-        first = line[start]
-        last = line[i - 1]
-        for j in range(start, i):
-            to_first = line[j] - first if first > 0 else end_lines
-            to_last = last - line[j] if last < n_lines - 1 else end_lines
-            out[j] = min(to_first, to_last) < end_lines
-        start = i
+    for i in range(n):
+        r = root[i]
+        to_first = line[i] - first[r] if first[r] > 1 else end_lines
+        to_last = last[r] - line[i] if last[r] < n_lines - 2 else end_lines
+        out[i] = min(to_first, to_last) < end_lines
     return out
 
 

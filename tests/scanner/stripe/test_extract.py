@@ -339,6 +339,34 @@ def test_stretch_end_flag_marks_the_lines_at_a_depth_jump_only():
         StripeOptions(end_lines=-1)
 
 
+def test_stretch_end_flag_is_the_same_with_one_or_several_peaks_per_line():
+    """A stray peak beside the stripe, and a dropout at the image's first line, are bridged
+    alike whether the frame holds one peak per line or several (found by review)."""
+    from scanner.stripe.peaks import _stretch_ends
+    from scanner.stripe.profile import _Peaks
+
+    line = np.arange(1, 240)  # line 0 dropped by noise
+    pos = 155.0 + 0.05 * line
+    pos[99] = 40.0  # line 100: a stray peak far from the stripe
+    z = np.zeros(line.size)
+    one = _Peaks(line, pos, z, z, z, np.zeros(line.size, np.uint8), z)
+    ends_one = _stretch_ends(one, 3.0, 240, 3)
+    assert line[ends_one].tolist() == [100]  # the stray peak alone, the stripe unbroken
+    # The same with a second stripe on lines 0-19 (several peaks per line there).
+    extra = np.arange(20)
+    two = _Peaks.concat(
+        [
+            one,
+            _Peaks(
+                extra, 280.0 + 0 * extra, *(np.zeros(20),) * 3, np.zeros(20, np.uint8), np.zeros(20)
+            ),
+        ]
+    )
+    ends_two = _stretch_ends(two, 3.0, 240, 3)
+    assert ends_two[: line.size].tolist() == ends_one.tolist()
+    assert two.line[ends_two][two.pos[ends_two] > 250].tolist() == [17, 18, 19]
+
+
 @pytest.mark.parametrize("background", [0.0, 60.0, 120.0])
 def test_precise_mode_does_not_depend_on_the_background_level(background):
     # Sampled and truncated, the derivative kernels do not sum to zero: a uniform background
