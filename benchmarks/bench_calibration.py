@@ -14,7 +14,14 @@ Prints tables (Markdown) for:
 Usage::
 
     python benchmarks/bench_calibration.py [--cells modern paper] [--work /tmp/bench_calib]
-        [--skip-real] [--skip-cells] [--robot-draws 50] [--seed 0]
+        [--skip-real] [--skip-cells] [--robot-draws 50] [--seed 0] [--seeds 1]
+        [--randomised]
+
+``--randomised``: each cell's sensor drawn anew per seed (camera, lens, laser geometry, robot
+repeatability, noise: :func:`scanner.virtual_cell.random_cell.randomised_cell`), the scene
+and poses kept. ``--seeds N``: seeds ``seed .. seed + N - 1``, then a summary per cell and
+method over them (mean, and the smallest and largest value). The intrinsics columns compare
+each method's camera with the truth: fx relative error, cx and cy errors.
 
 ``--robot-draws``: the hand-eye solvers over fresh draws of the robot's repeatability error
 (see :func:`robot_draw_study`); one session is one draw, too few to rank solvers that are
@@ -82,15 +89,26 @@ def hand_eye_errors(x: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
 # ------------------------------------------------------------------------------- virtual cells
 
 
-def _simulate(cell: str, out: Path, target: str | None, seed: int) -> Any:
+def _cell_config(cell: str, seed: int, randomised: bool) -> Any:
+    """The cell ``cell`` (a configs/cells name), its sensor drawn for ``seed`` if randomised."""
+    from scanner.virtual_cell.random_cell import randomised_cell
+
+    config = load_cell(cell)
+    return randomised_cell(config, np.random.default_rng(10_000 + seed)) if randomised else config
+
+
+def _simulate(cell: Any, out: Path, target: str | None, seed: int) -> Any:
     from scanner.virtual_cell.simulate import simulate_cell
     from scanner.virtual_cell.truth import read_truth
 
     if not (out / "truth.json").is_file():
         simulate_cell(cell, out, seed=seed, target=target, sessions=("calibration",), workers=2)
     truth = read_truth(out / "truth.json")
-    if truth.seed != seed:
-        raise SystemExit(f"{out}: simulated with seed {truth.seed}, not {seed}: use another --work")
+    if truth.seed != seed or truth.cell != cell.name:
+        raise SystemExit(
+            f"{out}: simulated for {truth.cell} seed {truth.seed}, not {cell.name} seed {seed}: "
+            "use another --work"
+        )
     return truth
 
 
@@ -170,17 +188,33 @@ def opencv_anchor(session_dir: Path) -> Anchor:
     return Anchor(plane, hand_eye, float(rms), views, cam)
 
 
+Row = tuple[str, str, float, float, float, float, float, float, float, float, float, float]
+
+
+def intrinsics_errors(K: np.ndarray, truth: Any) -> tuple[float, float, float]:
+    """fx relative error (%), cx and cy errors (px) of ``K`` against the true camera."""
+    Kt = truth.camera.K
+    return (
+        100.0 * (K[0, 0] / Kt[0, 0] - 1.0),
+        float(K[0, 2] - Kt[0, 2]),
+        float(K[1, 2] - Kt[1, 2]),
+    )
+
+
 def bench_cell(
-    cell: str, work: Path, seed: int = 0, robot_draws: int = 0
-) -> tuple[list[tuple[str, str, float, float, float, float, float, float, float]], list[str]]:
+    cell: str, work: Path, seed: int = 0, robot_draws: int = 0, randomised: bool = False
+) -> tuple[list[Row], list[str]]:
     """Rows (cell, method, normal deg, d mm, he rot deg, he trans mm, plane in flange deg and
-    mm, seconds), and the robot-draw study's table lines (none when ``robot_draws`` is 0)."""
-    rows = []
+    mm, seconds, fx %, cx px, cy px), and the robot-draw study's table lines (none when
+    ``robot_draws`` is 0)."""
+    rows: list[Row] = []
     own_views: list[PosedView] = []
     own_camera = None
-    truth = _simulate(cell, work / f"{cell}_own", None, seed)
-    session = read_session(work / f"{cell}_own" / "calibration")
-    cache = work / f"{cell}_own" / "observations.pkl"
+    config = _cell_config(cell, seed, randomised)
+    label = f"{cell}-randomised" if randomised else cell
+    truth = _simulate(config, work / f"{label}_own", None, seed)
+    session = read_session(work / f"{label}_own" / "calibration")
+    cache = work / f"{label}_own" / "observations.pkl"
     obs = pickle.loads(cache.read_bytes()) if cache.is_file() else None
     for method in ("default", "paper"):
         t0 = time.perf_counter()
@@ -201,29 +235,32 @@ def bench_cell(
             truth.light_plane,
             truth.flange_from_cam,
         )
-        rows.append((cell, method, na, dd, hr, ht, fa, fd, dt))
+        fx, cx, cy = intrinsics_errors(res.calibration.K, truth)
+        rows.append((label, method, na, dd, hr, ht, fa, fd, dt, fx, cx, cy))
         if method == "default":
             c = res.calibration
             own_views, own_camera = res.hand_eye_views, CameraModel(c.width, c.height, c.K, c.dist)
-    _simulate(cell, work / f"{cell}_chess", "chessboard", seed)
+    _simulate(config, work / f"{label}_chess", "chessboard", seed)
     t0 = time.perf_counter()
-    anchor = opencv_anchor(work / f"{cell}_chess" / "calibration")
+    anchor = opencv_anchor(work / f"{label}_chess" / "calibration")
     dt = time.perf_counter() - t0
     na, dd = plane_errors(anchor.plane, truth.light_plane)
     for m, x in anchor.hand_eye.items():
         hr, ht = hand_eye_errors(x, truth.flange_from_cam)
         fa, fd = flange_plane_errors(anchor.plane, x, truth.light_plane, truth.flange_from_cam)
-        rows.append((cell, f"OpenCV chessboard + {m} + Horus plane", na, dd, hr, ht, fa, fd, dt))
+        fx, cx, cy = intrinsics_errors(anchor.camera.K, truth)
+        name = f"OpenCV chessboard + {m} + Horus plane"
+        rows.append((label, name, na, dd, hr, ht, fa, fd, dt, fx, cx, cy))
     study: list[str] = []
     if robot_draws > 0 and own_camera is not None:
         study = robot_draw_study(
-            cell, own_views, own_camera, anchor, truth, robot_draws, np.random.default_rng(seed)
+            config, own_views, own_camera, anchor, truth, robot_draws, np.random.default_rng(seed)
         )
     return rows, study
 
 
 def robot_draw_study(
-    cell: str,
+    cell: Any,
     own_views: list[PosedView],
     own_camera: CameraModel,
     anchor: Anchor,
@@ -244,7 +281,7 @@ def robot_draw_study(
     Returns Markdown table lines: per solver the mean and RMS of the rotation and
     translation errors over the draws, and how often the default does better (paired).
     """
-    robot = load_cell(cell).robot
+    robot = cell.robot
     actual = {
         f.id: f.base_from_flange_true
         for f in truth.sessions["calibration"].frames
@@ -269,7 +306,7 @@ def robot_draw_study(
             if res:
                 errors[k, d] = hand_eye_errors(res.flange_from_cam, truth.flange_from_cam)
     lines = [
-        f"{cell}: {draws} draws of the robot's repeatability error "
+        f"{cell.name}: {draws} draws of the robot's repeatability error "
         f"({robot.repeatability_deg} deg, {robot.repeatability_mm} mm per axis), images kept:",
         "",
         "| solver | target views | rot mean (deg) | rot RMS | trans mean (mm) | trans RMS "
@@ -347,6 +384,38 @@ def bench_linelight(root: Path) -> dict[str, float]:
     }
 
 
+def seed_summary(rows: list[Row]) -> str:
+    """Per cell and method: each figure's mean |error| over the seeds, with its range."""
+    names = [
+        "normal (deg)",
+        "d (mm)",
+        "hand-eye rot (deg)",
+        "hand-eye trans (mm)",
+        "flange normal (deg)",
+        "flange d (mm)",
+        "fx (%)",
+        "cx (px)",
+        "cy (px)",
+    ]
+    cols = [2, 3, 4, 5, 6, 7, 9, 10, 11]
+    groups: dict[tuple[str, str], list[Row]] = {}
+    for r in rows:
+        groups.setdefault((r[0], r[1]), []).append(r)
+    out = [
+        "Mean |error| over the seeds (smallest - largest):",
+        "",
+        "| cell | method | seeds | " + " | ".join(names) + " |",
+        "|---|---|---|" + "---|" * len(names),
+    ]
+    for (cell, method), g in groups.items():
+        cells = []
+        for c in cols:
+            v = np.abs([r[c] for r in g])
+            cells.append(f"{v.mean():.4g} ({v.min():.3g} - {v.max():.3g})")
+        out.append(f"| {cell} | {method} | {len(g)} | " + " | ".join(cells) + " |")
+    return "\n".join(out)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -358,6 +427,10 @@ def main() -> None:
     ap.add_argument(
         "--seed", type=int, default=0, help="the virtual cells' seed (use a --work per seed)"
     )
+    ap.add_argument("--seeds", type=int, default=1, help="seeds from --seed on")
+    ap.add_argument(
+        "--randomised", action="store_true", help="each seed draws the cells' sensor anew"
+    )
     ap.add_argument(
         "--robot-draws",
         type=int,
@@ -368,20 +441,29 @@ def main() -> None:
     logging.basicConfig(level=logging.WARNING)
     if not args.skip_cells:
         print(
-            "| cell | method | normal err (deg) | d err (mm) | hand-eye rot (deg) "
-            "| hand-eye trans (mm) | plane in flange: normal (deg) | d (mm) | time (s) |"
+            "| cell | seed | method | normal err (deg) | d err (mm) | hand-eye rot (deg) "
+            "| hand-eye trans (mm) | plane in flange: normal (deg) | d (mm) | time (s) "
+            "| fx err (%) | cx err (px) | cy err (px) |"
         )
-        print("|---|---|---|---|---|---|---|---|---|")
+        print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
         studies = []
-        for cell in args.cells:
-            rows, study = bench_cell(cell, args.work, args.seed, args.robot_draws)
-            for c, m, na, dd, hr, ht, fa, fd, dt in rows:
-                print(
-                    f"| {c} | {m} | {na:.5f} | {dd:+.4f} | {hr:.5f} | {ht:.4f} "
-                    f"| {fa:.5f} | {fd:+.4f} | {dt:.1f} |"
-                )
-            studies.append(study)
+        all_rows: list[Row] = []
+        for seed in range(args.seed, args.seed + args.seeds):
+            work = args.work if args.seeds == 1 else args.work / f"seed{seed}"
+            for cell in args.cells:
+                rows, study = bench_cell(cell, work, seed, args.robot_draws, args.randomised)
+                for c, m, na, dd, hr, ht, fa, fd, dt, fx, cx, cy in rows:
+                    print(
+                        f"| {c} | {seed} | {m} | {na:.5f} | {dd:+.4f} | {hr:.5f} | {ht:.4f} "
+                        f"| {fa:.5f} | {fd:+.4f} | {dt:.1f} | {fx:+.4f} | {cx:+.3f} | {cy:+.3f} |",
+                        flush=True,
+                    )
+                all_rows += rows
+                studies.append(study)
         print()
+        if args.seeds > 1:
+            print(seed_summary(all_rows))
+            print()
         for study in studies:
             print("\n".join(study))
             print()
