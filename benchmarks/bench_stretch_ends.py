@@ -10,6 +10,10 @@ Two tables, on the sweep (seed 0) of the modern cell and of randomised sensor 0
   gives them, and the plate top's tilt and noise (points within 0.5 mm of its true plane).
 
     python benchmarks/bench_stretch_ends.py [--work /tmp/bench_stretch_ends] [--end-lines 3 6]
+        [--rescan]
+
+The sweeps are rendered once into ``--work``; the clouds are kept too, so after a change to
+the extractor or the scan pass ``--rescan``.
 """
 
 from __future__ import annotations
@@ -77,6 +81,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--work", type=Path, default=Path("/tmp/bench_stretch_ends"))
     ap.add_argument("--end-lines", type=int, nargs="*", default=[3, 6])
+    ap.add_argument("--rescan", action="store_true", help="scan again (clouds are cached)")
     args = ap.parse_args()
     cells = {
         "modern": load_cell("modern"),
@@ -95,7 +100,7 @@ def main() -> None:
         figures = {}
         for k in [0, *args.end_lines]:
             cloud = folder / f"cloud_end{k}.ply"
-            if not cloud.is_file():
+            if args.rescan or not cloud.is_file():
                 options = ScanOptions(stripe=StripeOptions(end_lines=k))
                 stages.scan([sim / "sweep"], sim / "calibration_true.json", cloud, options=options)
             f = cloud_sphere_figures(cloud, truth)

@@ -78,7 +78,7 @@ class ScanOptions:
         Statistical outlier removal (0 neighbours: off).
     keep_flagged : bool
         Keep the flagged points (saturated, ambiguous, low contrast, border, secondary,
-        grazing) in the cloud, with their ``flags``; by default the cloud holds only
+        grazing, stretch end) in the cloud, with their ``flags``; by default the cloud holds only
         trusted points (``flags == 0``), so that any tool that opens it sees those only.
     max_incidence_deg : float or None
         Flag points whose surface (normal from the cloud) is seen, or lit when

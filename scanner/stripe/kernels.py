@@ -113,7 +113,8 @@ def _line_peaks(img, words, step, hw, thr, search_other):  # pragma: no cover - 
     # line is split into three parts, the middle one _SPAN px around the previous line's peak
     # (aligned: the vectorised maxima run faster), and the parts' maxima taken. Where the
     # middle part holds the maximum and the first part does not, the first maximum is found by
-    # a branch-free search of the middle part; otherwise by a search from the line's start.
+    # a branch-free search of the middle part; otherwise by a search from the middle part's
+    # start (the first part lacks the maximum) or from the line's start.
     spans = words.size > 0 and W >= _SPAN + 16
     lo_max = (W - 8 - _SPAN) // 8 * 8
     hint = W // 2

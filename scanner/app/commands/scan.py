@@ -57,7 +57,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--keep-flagged",
         action="store_true",
         help="keep flagged points (saturated, ambiguous, low contrast, border, secondary, "
-        "grazing) in the cloud with their flags; by default it holds trusted points only",
+        "grazing, stretch end) in the cloud with their flags; by default it holds trusted "
+        "points only",
     )
     p.add_argument(
         "--max-incidence-deg",
