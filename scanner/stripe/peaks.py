@@ -212,8 +212,10 @@ def _stretch_ends(peaks: _Peaks, link_px: float, n_lines: int, end_lines: int) -
     if n == 0 or end_lines <= 0:
         return np.zeros(n, bool)
     line = peaks.line
-    if np.all(line[1:] > line[:-1]):  # one peak per line, in line order: one compiled pass
-        return _line_run_ends(line, peaks.pos, float(link_px), int(n_lines), int(end_lines))
+    # One peak per line, in line order (the common case): one compiled pass.
+    ends = _line_run_ends(line, peaks.pos, float(link_px), int(n_lines), int(end_lines))
+    if ends is not None:
+        return ends
     run = _segments(peaks, link_px, max_gap=2)  # labels 0 .. k - 1
     order = np.argsort(run, kind="stable")
     starts = np.concatenate([[0], np.flatnonzero(np.diff(run[order])) + 1])
@@ -226,37 +228,57 @@ def _stretch_ends(peaks: _Peaks, link_px: float, n_lines: int, end_lines: int) -
 
 @njit(cache=True, nogil=True)
 def _line_run_ends(line, pos, link_px, n_lines, end_lines):  # pragma: no cover - compiled
-    """:func:`_stretch_ends` for one peak per line in line order: the runs linked as
-    :func:`_segments` links them with ``max_gap=2`` (union-find over the two previous peaks),
-    each run's first and last line, the distances to them."""
+    """:func:`_stretch_ends` for one peak per line in line order (``None`` otherwise): the
+    runs linked as :func:`_segments` links them with ``max_gap=2``, each run's first and last
+    line, the distances to them.
+
+    A peak joins the run of the peak before it, or of the one before that (a stray peak or a
+    dropout between); where it links to both and they are in different runs, the runs merge
+    (labels through a small union-find, rarely needed)."""
     n = line.size
-    parent = np.arange(n)
-    for i in range(1, n):
-        for j in range(max(i - 2, 0), i):
-            gap = line[i] - line[j]
-            if gap <= 2 and abs(pos[i] - pos[j]) <= link_px * gap:
-                a = i
-                while parent[a] != a:
-                    a = parent[a]
-                b = j
-                while parent[b] != b:
-                    b = parent[b]
-                if a != b:
-                    parent[max(a, b)] = min(a, b)
-    root = np.empty(n, np.int64)
-    first = np.empty(n, np.int64)  # per root (the run's lowest index: its first line)
-    last = np.empty(n, np.int64)
+    label = np.empty(n, np.int64)
+    parent = np.empty(n, np.int64)  # per label
+    k = 0
     for i in range(n):
-        r = i
+        if i and line[i] <= line[i - 1]:
+            return None
+        a = -1
+        b = -1
+        if i >= 1:
+            gap = line[i] - line[i - 1]
+            if gap <= 2 and abs(pos[i] - pos[i - 1]) <= link_px * gap:
+                a = label[i - 1]
+        if i >= 2:
+            gap = line[i] - line[i - 2]
+            if gap <= 2 and abs(pos[i] - pos[i - 2]) <= link_px * gap:
+                b = label[i - 2]
+        if a < 0 and b < 0:
+            parent[k] = k
+            label[i] = k
+            k += 1
+            continue
+        if a >= 0 and b >= 0:
+            while parent[a] != a:
+                a = parent[a]
+            while parent[b] != b:
+                b = parent[b]
+            if a != b:
+                parent[max(a, b)] = min(a, b)
+            label[i] = min(a, b)
+        else:
+            label[i] = max(a, b)
+    first = np.full(k, n_lines, np.int64)
+    last = np.full(k, -1, np.int64)
+    for i in range(n):
+        r = label[i]
         while parent[r] != r:
             r = parent[r]
-        root[i] = r
-        if r == i:
-            first[i] = line[i]
-        last[r] = line[i]  # lines increase with the index
+        label[i] = r
+        first[r] = min(first[r], line[i])
+        last[r] = max(last[r], line[i])
     out = np.zeros(n, np.bool_)
     for i in range(n):
-        r = root[i]
+        r = label[i]
         to_first = line[i] - first[r] if first[r] > 1 else end_lines
         to_last = last[r] - line[i] if last[r] < n_lines - 2 else end_lines
         out[i] = min(to_first, to_last) < end_lines
