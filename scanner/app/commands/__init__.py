@@ -12,6 +12,7 @@ import argparse
 from pathlib import Path
 
 from scanner.scanning.pipeline import ScanOptions
+from scanner.stripe.profile import StripeOptions
 
 __all__ = [
     "add_calibration",
@@ -76,6 +77,7 @@ def scan_options(args: argparse.Namespace) -> ScanOptions:
         Stripe mode, cloud filtering, ICP and extraction processes as given on the command line.
     """
     return ScanOptions(
+        stripe=StripeOptions(end_lines=args.stretch_end_lines),
         mode=args.mode,
         voxel_mm=args.voxel_mm,
         outlier_neighbors=args.outliers,

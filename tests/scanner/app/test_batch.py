@@ -125,6 +125,10 @@ def test_batch_scans_with_the_scan_commands_defaults_on_one_process():
     )
     assert batch_args.mode == args.mode
     assert replace(cli, workers=1) == ScanOptions(mode=batch_args.mode, workers=1)
+    flagged = build_parser().parse_args(
+        ["scan", "s", "--calibration", "c.json", "--out", "x.ply", "--stretch-end-lines", "3"]
+    )
+    assert scan_options(flagged).stripe.end_lines == 3
 
 
 def test_stripe_results_do_not_depend_on_the_number_of_workers(scene, tmp_path):

@@ -296,7 +296,7 @@ def test_stretch_ends_carry_the_mixed_pixels_and_are_flagged(mode):
     errs: dict[str, list[np.ndarray]] = {"end": [], "clean": []}
     for i in (100, 130, 160, 200, 230, 260, 290):
         img, truth = vc.render_laser_image(cell, base_from_cam[i], np.random.default_rng(i))
-        p = extract_stripe(img, mode=mode, orientation="auto")
+        p = extract_stripe(img, mode=mode, orientation="auto", end_lines=3)
         err, dist, _, ok = _cell_errors(p, truth.uv)
         ok &= dist < 2.0
         end = (p.flags & StripeFlag.STRETCH_END) != 0
@@ -320,17 +320,17 @@ def test_stretch_end_flag_marks_the_lines_at_a_depth_jump_only():
     ]
     img, _ = render_stripes(SHAPE, segs, noise=1.0, seed=4)
     for mode in ("fast", "precise"):
-        p = extract_stripe(img, mode=mode, orientation="rows")
+        p = extract_stripe(img, mode=mode, orientation="rows", end_lines=3)
         end = (p.flags & StripeFlag.STRETCH_END) != 0
         assert sorted(p.line[end].tolist()) == [117, 118, 119, 120, 121, 122]
-        p0 = extract_stripe(img, mode=mode, orientation="rows", end_lines=0)
+        p0 = extract_stripe(img, mode=mode, orientation="rows")  # off by default
         assert not np.any(p0.flags & StripeFlag.STRETCH_END)
         p5 = extract_stripe(img, mode=mode, orientation="rows", end_lines=5)
         assert np.count_nonzero(p5.flags & StripeFlag.STRETCH_END) == 10
     # A second stripe sharing lines 30-89 (several peaks per line: runs by linking).
     segs.append(StripeSegment((30, 90), (280.0, 0.0), amplitude=150.0))
     img, _ = render_stripes(SHAPE, segs, noise=1.0, seed=4)
-    p = extract_stripe(img, mode="fast", orientation="rows")
+    p = extract_stripe(img, mode="fast", orientation="rows", end_lines=3)
     end = (p.flags & StripeFlag.STRETCH_END) != 0
     second = p.u > 250
     assert sorted(p.line[end & ~second].tolist()) == [117, 118, 119, 120, 121, 122]
