@@ -23,7 +23,6 @@ from pathlib import Path
 
 import numpy as np
 from bench_laser_origin import cloud_sphere_figures
-from scipy.spatial import cKDTree
 
 from scanner.app import stages
 from scanner.formats.clouds import cloud_arrays, read_cloud
@@ -33,27 +32,23 @@ from scanner.stripe.extract import extract_stripe
 from scanner.stripe.profile import StripeFlag, StripeOptions
 from scanner.virtual_cell.cell import load_cell
 from scanner.virtual_cell.random_cell import randomised_cell
-from scanner.virtual_cell.truth import CellTruth, StripeTable, read_truth
+from scanner.virtual_cell.truth import CellTruth, StripeTable, along_line_errors, read_truth
 
 
-def image_errors(sim: Path, every: int = 4) -> dict[str, tuple[int, float]]:
-    """Points and RMS error (px) along the scan line: flagged STRETCH_END only, and clean."""
+def image_errors(sim: Path, end_lines: int, every: int = 4) -> dict[str, tuple[int, float]]:
+    """Points and RMS error (px) along the scan line: flagged STRETCH_END only (``end_lines``
+    lines, the flag being off by default), and clean."""
     session = read_session(sim / "sweep")
     table = StripeTable.load(sim / "sweep_stripes.npz")
     errs: dict[str, list[np.ndarray]] = {"stretch end": [], "clean": []}
     for f in session.frames[::every]:
-        p = extract_stripe(session.load_laser_image(f), mode="precise", orientation="auto")
+        image = session.load_laser_image(f)
+        p = extract_stripe(image, mode="precise", orientation="auto", end_lines=end_lines)
         uv_true, _ = table.of_frame(f.id)
         if len(p) < 2 or len(uv_true) < 2:
             continue
-        a = 0 if p.orientation == "rows" else 1  # the coordinate along the scan line
-        b = 1 - a
-        dist, k = cKDTree(uv_true).query(p.uv, k=2)
-        p1, p2 = uv_true[k[:, 0]], uv_true[k[:, 1]]
-        step = p2[:, b] - p1[:, b]
-        ok = (np.abs(step) > 1e-6) & (dist[:, 0] < 2.0)
-        along = p1[:, a] + (p.uv[:, b] - p1[:, b]) * (p2[:, a] - p1[:, a]) / np.where(ok, step, 1.0)
-        e = p.uv[:, a] - along
+        e, dist, _, ok = along_line_errors(p.uv, p.orientation, uv_true)
+        ok &= dist < 2.0
         errs["stretch end"].append(e[ok & (p.flags == StripeFlag.STRETCH_END)])
         errs["clean"].append(e[ok & (p.flags == 0)])
     out = {}
@@ -93,9 +88,13 @@ def main() -> None:
         if not (sim / "truth.json").is_file():
             stages.simulate(cell, sim, seed=0, sessions=("sweep",), workers=2)
         truth = read_truth(sim / "truth.json")
-        print(f"\n{name}: precise mode, every 4th sweep frame, error along the scan line")
+        lines = args.end_lines[0] if args.end_lines else 3
+        print(
+            f"\n{name}: precise mode, every 4th sweep frame, {lines} end lines flagged, "
+            "error along the scan line"
+        )
         print("| points | count | RMS px |\n|---|---:|---:|")
-        for kind, (count, rms) in image_errors(sim).items():
+        for kind, (count, rms) in image_errors(sim, lines).items():
             print(f"| {kind} | {count} | {rms:.3f} |")
         figures = {}
         for k in [0, *args.end_lines]:

@@ -214,11 +214,10 @@ def accuracy_table(seeds: int = 8) -> None:
 
 
 def cell_table(cell_dir: Path, frames: int) -> None:
-    from scipy.spatial import cKDTree
 
     from scanner.formats.session import read_session
     from scanner.stripe.extract import StripeFlag
-    from scanner.virtual_cell.truth import StripeTable
+    from scanner.virtual_cell.truth import StripeTable, along_line_errors
 
     session = read_session(cell_dir / "sweep")
     table = StripeTable.load(cell_dir / "sweep_stripes.npz")
@@ -240,20 +239,11 @@ def cell_table(cell_dir: Path, frames: int) -> None:
             if len(uv_true) < 2:
                 false += len(p)
                 continue
-            dist, k = cKDTree(uv_true).query(p.uv, k=2)
-            false += int(np.count_nonzero(dist[:, 0] > 2.0))
-            a = 0 if p.orientation == "rows" else 1  # coordinate along the scan line
-            b = 1 - a
-            p1, p2 = uv_true[k[:, 0]], uv_true[k[:, 1]]
-            step = p2[:, b] - p1[:, b]
-            ok = (np.abs(step) > 1e-6) & (dist[:, 0] < 2.0)
-            along = p1[:, a] + (p.uv[:, b] - p1[:, b]) * (p2[:, a] - p1[:, a]) / np.where(
-                ok, step, 1.0
-            )
-            e = p.uv[:, a] - along
-            use = ok & ((p.flags & trusted_bits) == 0)
+            e, dist, nearest, ok = along_line_errors(p.uv, p.orientation, uv_true)
+            false += int(np.count_nonzero(dist > 2.0))
+            use = ok & (dist < 2.0) & ((p.flags & trusted_bits) == 0)
             for name in ("table", "plate", "sphere_1", "sphere_2"):
-                m = use & (surf[k[:, 0]] == name)
+                m = use & (surf[nearest] == name)
                 errs.setdefault(name, []).append(e[m])
         for name, parts in errs.items():
             e = np.concatenate(parts)

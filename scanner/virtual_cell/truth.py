@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
 from scanner.core.camera import CameraModel
 from scanner.core.fileio import InputError
@@ -205,6 +206,42 @@ class CellTruth:
             if o.id == object_id:
                 return o
         raise KeyError(f"object {object_id!r} not in the truth ({[o.id for o in self.objects]})")
+
+
+def along_line_errors(
+    uv_px: NDArray, orientation: str, uv_true_px: NDArray
+) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+    """Each extracted stripe point's error along its scan line against the true centre curve.
+
+    Parameters
+    ----------
+    uv_px : ndarray, shape (N, 2)
+        Extracted centres (``StripeProfile.uv``).
+    orientation : {"rows", "cols"}
+        The profile's scan lines (the error is along ``u`` for rows, ``v`` for columns).
+    uv_true_px : ndarray, shape (M, 2), M >= 2
+        The true curve's samples (:attr:`StripeTable.of_frame`, ``StripeTruth.uv``).
+
+    Returns
+    -------
+    err_px : ndarray, shape (N,)
+        Along-line error: the point minus the true curve at the point's across coordinate,
+        interpolated between its two nearest samples.
+    dist_px : ndarray, shape (N,)
+        Distance to the nearest sample.
+    nearest : ndarray, shape (N,), int
+        Index of the nearest sample (its surface in the truth's tables).
+    ok : ndarray, shape (N,), bool
+        Where the two samples differ across the line (the interpolation is defined).
+    """
+    dist, k = cKDTree(uv_true_px).query(uv_px, k=2)
+    p1, p2 = uv_true_px[k[:, 0]], uv_true_px[k[:, 1]]
+    a = 1 if orientation == "cols" else 0  # the coordinate along the scan line
+    b = 1 - a
+    step = p2[:, b] - p1[:, b]
+    ok = np.abs(step) > 1e-6
+    along = p1[:, a] + (uv_px[:, b] - p1[:, b]) * (p2[:, a] - p1[:, a]) / np.where(ok, step, 1.0)
+    return uv_px[:, a] - along, dist[:, 0], k[:, 0], ok
 
 
 def truth_to_json(truth: CellTruth) -> dict[str, Any]:

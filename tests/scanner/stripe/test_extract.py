@@ -230,17 +230,9 @@ def _cell_frame(speckle: bool):
 
 def _cell_errors(profile: StripeProfile, uv_true: np.ndarray):
     """Along-line error against the true centre curve, and the distance to it."""
-    from scipy.spatial import cKDTree
+    from scanner.virtual_cell.truth import along_line_errors
 
-    dist, k = cKDTree(uv_true).query(profile.uv, k=2)
-    p1, p2 = uv_true[k[:, 0]], uv_true[k[:, 1]]
-    a = 1 if profile.orientation == "cols" else 0  # the coordinate along the scan line
-    b = 1 - a
-    step = p2[:, b] - p1[:, b]
-    ok = np.abs(step) > 1e-6
-    across = profile.uv[:, b]
-    along_true = p1[:, a] + (across - p1[:, b]) * (p2[:, a] - p1[:, a]) / np.where(ok, step, 1.0)
-    return profile.uv[:, a] - along_true, dist[:, 0], k[:, 0], ok
+    return along_line_errors(profile.uv, profile.orientation, uv_true)
 
 
 @pytest.mark.slow
