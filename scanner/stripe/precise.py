@@ -38,22 +38,23 @@ def _refine_precise(img: NDArray, peaks: _Peaks, sigma: float) -> tuple[NDArray,
     types and for platforms without numba.
     """
     sat = (peaks.flags & np.uint8(StripeFlag.SATURATED)) != 0
+    level = (peaks.peak - peaks.contrast).astype(np.float64)  # the background at each peak
     if (
         HAVE_NUMBA
         and img.dtype in (np.uint8, np.uint16, np.float32)
         and img.dtype.isnative
         and img.flags.c_contiguous
     ):
-        level = peaks.peak - peaks.contrast
         pos = steger_points(img, peaks.line, peaks.pos, peaks.slope, level, sat, sigma)
         return pos, np.zeros(pos.size)
-    return _refine_numpy(img, peaks, sigma, sat)
+    return _refine_numpy(img, peaks, sigma, sat, level)
 
 
 def _refine_numpy(
-    img: NDArray, peaks: _Peaks, sigma: float, sat: NDArray
+    img: NDArray, peaks: _Peaks, sigma: float, sat: NDArray, level: NDArray
 ) -> tuple[NDArray, NDArray]:
-    """:func:`_refine_precise` with NumPy, all points at once (``sat``: saturated peaks)."""
+    """:func:`_refine_precise` with NumPy, all points at once (``sat``: saturated peaks,
+    ``level``: the background's level at each, grey levels)."""
     H, W = img.shape
     R = int(np.ceil(2.5 * sigma))
     n = peaks.line.size
@@ -102,7 +103,6 @@ def _refine_numpy(
     # so its level leaks into the responses through their sums (at 120 grey levels 0.004 ->
     # 0.021 px RMS) and is taken out; its slope along the line biases the gradient of an
     # asymmetric profile.
-    level = (peaks.peak - peaks.contrast).astype(np.float64)
     sg1 = g1.astype(np.float64) @ np.ones(P)
     sg2 = g2.astype(np.float64) @ np.ones(P)
     sv1, sv2 = float(kv1.sum()), float(kv2.sum())

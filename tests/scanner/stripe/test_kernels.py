@@ -176,7 +176,7 @@ def test_steger_kernel_refines_as_numpy_does(kind, sigma):
     saturated = (prim.flags & np.uint8(StripeFlag.SATURATED)) != 0
     level = prim.peak - prim.contrast
     got = steger_points(img, prim.line, prim.pos, prim.slope, level, saturated, sigma)
-    want, _ = precise._refine_numpy(img, prim, sigma, saturated)
+    want, _ = precise._refine_numpy(img, prim, sigma, saturated, level.astype(np.float64))
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-4)
     # The refinement moved the centres whose patch is inside the image (not only kept the
     # fast ones); saturated ones and those at the border keep theirs.
