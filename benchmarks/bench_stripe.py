@@ -109,7 +109,7 @@ def speed_table(shape: tuple[int, int] = SHAPE) -> None:
         f"(now {results['fast'] / t_max:.1f}x); precise >= 3000 profiles/s "
         f"(now {1.0 / results['precise']:.0f})"
     )
-    print("column scan lines include the frame's transposition (cv2.transpose)")
+    print("column scan lines: the frame stored with its scan lines as columns, read in place")
     print("a profile is one frame's stripe (every scan line of it)")
 
 

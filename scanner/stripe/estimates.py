@@ -44,6 +44,8 @@ def estimate_noise(image: NDArray, step: int = 32) -> float:
     row, which smooth shading and a thin stripe barely touch.
     """
     rows = np.asarray(image)[::step]
+    if rows.strides[1] != rows.itemsize:  # a transposed view: OpenCV reads contiguous rows
+        rows = np.ascontiguousarray(rows)
     if rows.dtype in (np.uint8, np.uint16):
         diff = cv2.absdiff(rows[:, 1:], rows[:, :-1])  # |a - b| without a wider dtype
     else:

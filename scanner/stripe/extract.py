@@ -135,7 +135,9 @@ def extract_stripe(
             img[saturated] = level
     if orientation == "auto":
         orientation = orientation_from_image(img)
-    work = img if orientation == "rows" else cv2.transpose(img)
+    # Column scan lines: the transposed view, read in place by the kernels (copied only on the
+    # rarer paths that need contiguous rows).
+    work = img if orientation == "rows" else img.T
     noise = float(opts.noise) if opts.noise is not None else estimate_noise(work)
 
     hw = opts.half_window_px
@@ -159,8 +161,8 @@ def extract_stripe(
         )
     if peaks.line.size >= 4:
         typical = float(np.partition(peaks.contrast, peaks.line.size // 2)[peaks.line.size // 2])
-        low = peaks.contrast < opts.low_contrast_ratio * typical
-        if low.any():
+        if not peaks.contrast.min() >= opts.low_contrast_ratio * typical:  # NaN: look
+            low = peaks.contrast < opts.low_contrast_ratio * typical
             peaks.flags[low] |= np.uint8(StripeFlag.LOW_CONTRAST)
 
     ends = _stretch_ends(peaks, opts.link_px, work.shape[0], int(opts.end_lines))

@@ -31,6 +31,14 @@ def _saturation_level(img: NDArray, options: StripeOptions) -> float:
     return float("inf")
 
 
+def _gather(img: NDArray, rows: NDArray, cols: NDArray) -> NDArray:
+    """``img[rows, cols]`` (broadcast index arrays inside the image), from the flat buffer of a
+    C-contiguous frame; a transposed view is read in place, not copied whole."""
+    if img.flags.c_contiguous:
+        return img.reshape(-1).take(rows * img.shape[1] + cols)
+    return img[rows, cols]
+
+
 def _measure(
     img: NDArray,
     lines: NDArray,
@@ -47,17 +55,13 @@ def _measure(
     second maximum); ``None``: the median width of this batch.
     """
     W = img.shape[1]
-    flat = img.reshape(-1)
     off = np.arange(-hw - 2, hw + 3)
     c = cols[:, None] + off
     near = np.flatnonzero((cols < hw + 2) | (cols >= W - hw - 2))
     if near.size:
         inside_near = (c[near] >= 0) & (c[near] < W)
         np.clip(c, 0, W - 1, out=c)
-    idx = c
-    idx += (lines * W)[:, None]
-    vals = flat.take(idx)
-    vals = vals.astype(np.float32)
+    vals = _gather(img, lines[:, None], c).astype(np.float32)
     ones = np.ones(2 * hw + 1, np.float32)
     counts = None
     if count_above is not None:
@@ -218,6 +222,7 @@ def _measure_many(
     set to 0. ``typical``: the typical width; ``None``: the median over the windows inside the
     image.
     """
+    img = np.ascontiguousarray(img)  # a transposed view: copied (runs of pixels read below)
     n = cols.size
     W = img.shape[1]
     if n <= 2 or W < 2 * hw + 5:
@@ -307,15 +312,17 @@ def _measure_lines(
     The same peaks as :func:`_measure_many` of ``img[::step].argmax(axis=1)`` (the kernel
     measures the common windows, :func:`_measure` the uncommon ones), with the peak columns and
     whether each line holds a pixel above ``thr`` outside its primary window ``cols - hw ..
-    cols + hw``. ``None`` where the kernel does not apply: numba missing, a dtype other than
-    uint8, uint16 or float32, NaN in the frame, a frame narrower than a window, at most two
-    lines, or a negative ``thr`` for an unsigned frame.
+    cols + hw``. ``img``: C-contiguous, or the transposed view of a C-contiguous frame (its
+    lines are the stored columns: read in place). ``None`` where the kernel does not apply:
+    numba missing, a dtype other than uint8, uint16 or float32, another layout, NaN in the
+    frame, a frame narrower than a window, at most two lines, or a negative ``thr`` for an
+    unsigned frame.
     """
     H, W = img.shape
     if (
         not HAVE_NUMBA
         or img.dtype not in (np.uint8, np.uint16, np.float32)
-        or not img.flags.c_contiguous
+        or not (img.flags.c_contiguous or img.flags.f_contiguous)
         or W < 2 * hw + 5
         or (H + step - 1) // step <= 2
         or (img.dtype.kind == "u" and thr < 0)
@@ -350,7 +357,7 @@ def _saturated_centres(
     off = np.arange(-reach, reach + 1)
     c = cols[:, None] + off
     inside = (c >= 0) & (c < W)
-    vals = img.reshape(-1).take(lines[:, None] * W + np.clip(c, 0, W - 1)).astype(np.float64)
+    vals = _gather(img, lines[:, None], np.clip(c, 0, W - 1)).astype(np.float64)
     vals = np.where(inside, vals, -np.inf)
     on = vals >= sat
     mid = reach

@@ -28,11 +28,9 @@ from scanner.stripe.profile import _FWHM_PER_SIGMA
 __all__ = ["HAVE_NUMBA", "line_peaks", "steger_points"]
 
 _REACH = 32  # px either side of the previous line's peak where the line's is sought first
-_SPAN = 3 * _REACH  # px of that middle part: 12 whole words, aligned
+_SPAN = 3 * _REACH  # px of that middle part, aligned; its offsets fit 8 bits
 _ONES = np.uint64(0x0101010101010101)
 _HIGHS = np.uint64(0x8080808080808080)
-# ((x >> 7) * _BYTE_INDEX) >> 56 is k for x = 0x80 << 8 k: the index of a word's flagged byte.
-_BYTE_INDEX = np.uint64(0x0001020304050607)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -43,14 +41,6 @@ def _run_max(seg):  # pragma: no cover - compiled
         if v > m:
             m = v
     return m
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _count_above(seg, level):  # pragma: no cover - compiled
-    n = 0
-    for j in range(seg.size):
-        n += np.int64(seg[j] > level)
-    return n
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -73,25 +63,73 @@ def _first_equal(row, words, w0, c, best):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _first_equal_in_span(words, w_lo, best):  # pragma: no cover - compiled
-    """The first pixel holding ``best`` in the ``_SPAN // 8`` words from ``w_lo`` (one must).
+def _first_equal_in_span(seg, best):  # pragma: no cover - compiled
+    """The first index of ``seg`` (``_SPAN`` pixels) holding ``best`` (one must).
 
-    Without branches (a mispredicted loop exit costs more than the search itself): the first
-    word with a byte equal to ``best`` by a minimum over all of them, then its lowest such byte.
+    A minimum over the whole span of 8-bit indices, without branches: it compiles to vector
+    compares and minima (a loop that stops at the first hit cannot, and a mispredicted exit
+    costs more than the search itself).
     """
-    pattern = np.uint64(best) * _ONES
-    first = np.int64(_SPAN // 8)
-    for k in range(_SPAN // 8):
-        y = words[w_lo + k] ^ pattern
-        hit = (y - _ONES) & ~y & _HIGHS
-        first = min(first, np.int64(k) | (np.int64(hit == 0) << 20))
-    y = words[w_lo + first] ^ pattern
-    hit = (y - _ONES) & ~y & _HIGHS
-    lowest = hit & (~hit + np.uint64(1))  # the 0x80 bit of the lowest such byte
-    return (w_lo + first) * 8 + np.int64(((lowest >> np.uint64(7)) * _BYTE_INDEX) >> np.uint64(56))
+    first = np.uint8(_SPAN)
+    for j in range(_SPAN):
+        first = min(first, np.uint8(j) if seg[j] == best else np.uint8(_SPAN))
+    return np.int64(first)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
+def _span_max_count(seg, level):  # pragma: no cover - compiled
+    """The maximum of ``seg`` (``_SPAN`` pixels) and how many of its pixels exceed ``level``.
+
+    One pass of vector maxima and compares (the count fits 8 bits).
+    """
+    m = seg[0]
+    n = np.uint8(0)
+    for j in range(_SPAN):
+        v = seg[j]
+        m = max(m, v)
+        n += np.uint8(v > level)
+    return m, np.int64(n)
+
+
+@njit(cache=True, nogil=True, inline="always", fastmath={"reassoc", "contract"})
+def _measure_window(win, hw, thr, best):  # pragma: no cover - compiled
+    """One window of ``2 hw + 5`` pixels around a peak of value ``best`` (not at a border).
+
+    Returns the centre of gravity's offset from the peak pixel, the contrast, the background
+    slope, the FWHM-equivalent width and how many pixels of ``-hw .. hw`` exceed ``thr``. The
+    background is the line through the means of the two flank pixels on each side (at
+    ``x = -/+ (hw + 1.5)``); a window whose background-subtracted sum is not positive has
+    contrast 0 and offset 0.
+    """
+    n_core = 2 * hw + 1
+    x2 = hw * (hw + 1) * (2 * hw + 1) / 3.0  # sum of x^2, x = -hw..hw
+    s0 = 0.0
+    s1 = 0.0
+    s2 = 0.0
+    n_win = 0
+    for j in range(n_core):
+        p = win[j + 2]
+        v = np.float64(p)
+        x = np.float64(j - hw)
+        s0 += v
+        s1 += x * v
+        s2 += x * x * v
+        n_win += p > thr
+    left = np.float64(win[0]) + np.float64(win[1])
+    right = np.float64(win[n_core + 2]) + np.float64(win[n_core + 3])
+    mean = 0.25 * (left + right)
+    sl = 0.5 * (right - left) / (2 * hw + 3)
+    sw = s0 - n_core * mean
+    sx = s1 - x2 * sl
+    sxx = s2 - x2 * mean
+    contrast = np.float64(best) - mean if sw > 0.0 else 0.0
+    sw = sw if sw > 0.0 else 1.0
+    mu = sx / sw
+    var = max(sxx / sw - mu * mu, 0.0)
+    return mu, contrast, sl, _FWHM_PER_SIGMA * np.sqrt(var), n_win
+
+
+@njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})
 def _line_peaks(img, words, step, hw, thr, search_other):  # pragma: no cover - compiled
     H, W = img.shape
     n = (H + step - 1) // step
@@ -103,19 +141,15 @@ def _line_peaks(img, words, step, hw, thr, search_other):  # pragma: no cover - 
     width = np.empty(n, np.float32)
     near = np.zeros(n, np.bool_)
     other = np.zeros(n, np.bool_)
-    sw_ = np.zeros(n)
-    sx_ = np.zeros(n)
-    sxx_ = np.zeros(n)
+    span_count = np.full(n, -1, np.int64)
     words_per_line = W // 8
-    n_core = 2 * hw + 1
-    x2 = hw * (hw + 1) * (2 * hw + 1) / 3.0  # sum of x^2, x = -hw..hw
     # The line's first maximum (as argmax). The stripe moves little from line to line, so each
     # line is split into three parts, the middle one _SPAN px around the previous line's peak
     # (aligned: the vectorised maxima run faster), and the parts' maxima taken. Where the
     # middle part holds the maximum and the first part does not, the first maximum is found by
     # a branch-free search of the middle part; otherwise by a search from the middle part's
     # start (the first part lacks the maximum) or from the line's start.
-    spans = words.size > 0 and W >= _SPAN + 16
+    spans = W >= _SPAN + 16
     lo_max = (W - 8 - _SPAN) // 8 * 8
     hint = W // 2
     for i in range(n):
@@ -129,11 +163,14 @@ def _line_peaks(img, words, step, hw, thr, search_other):  # pragma: no cover - 
             lo = 1
             hi = W - 1
         m1 = _run_max(row[:lo])
-        m2 = _run_max(row[lo:hi])
+        if spans:
+            m2, n_span = _span_max_count(row[lo:hi], thr)
+        else:
+            m2, n_span = _run_max(row[lo:hi]), 0
         m3 = _run_max(row[hi:])
         best = max(m1, max(m2, m3))
         if spans and m1 < best and m2 == best:
-            c = _first_equal_in_span(words, w0 + lo // 8, best) - r * W
+            c = lo + _first_equal_in_span(row[lo:hi], best)
         else:
             c = _first_equal(row, words, w0, lo if m1 < best else 0, best)
         cols[i] = c
@@ -141,53 +178,101 @@ def _line_peaks(img, words, step, hw, thr, search_other):  # pragma: no cover - 
         peak[i] = best
 
         # Anything above the threshold outside the window c - hw .. c + hw (clipped)? Where
-        # the window lies in the middle part: a pixel above it in the outer parts, or more of
-        # them in the middle part than in the window (counts: no branches).
+        # the window lies in the middle part, decided with the window's count below: a pixel
+        # above it in the outer parts (then more than any count), or more in the middle part
+        # than in the window.
         a = c - hw
         b = c + hw + 1
         if search_other and best > thr:
-            if a >= lo and b <= hi:
-                other[i] = (max(m1, m3) > thr) | (
-                    _count_above(row[lo:hi], thr) > _count_above(row[a:b], thr)
-                )
+            if spans and a >= lo and b <= hi:
+                span_count[i] = _SPAN + 1 if max(m1, m3) > thr else n_span
             else:
                 other[i] = (a > 0 and _run_max(row[:a]) > thr) or (
                     b < W and _run_max(row[b:]) > thr
                 )
+        near[i] = c < hw + 2 or c > W - hw - 3  # measured by _measure
 
-        if c < hw + 2 or c > W - hw - 3:
-            near[i] = True  # measured by _measure
-            continue
-        # Linear background through the flank pairs' means at x = -/+ (hw + 1.5); the sums
-        # over x = -hw..hw (win[2:-2]); the divisions and roots in a loop of their own below.
-        win = row[c - hw - 2 : c + hw + 3]
-        s0 = 0.0
-        s1 = 0.0
-        s2 = 0.0
-        for j in range(n_core):
-            v = np.float64(win[j + 2])
-            x = np.float64(j - hw)
-            s0 += v
-            s1 += x * v
-            s2 += x * x * v
-        left = np.float64(win[0]) + np.float64(win[1])
-        right = np.float64(win[n_core + 2]) + np.float64(win[n_core + 3])
-        mean = 0.25 * (left + right)
-        sl = 0.5 * (right - left) / (2 * hw + 3)
-        sw_[i] = s0 - n_core * mean
-        sx_[i] = s1 - x2 * sl
-        sxx_[i] = s2 - x2 * mean
-        contrast[i] = np.float64(best) - mean
-        slope[i] = sl
+    # The windows: lines independent of each other from here on.
     for i in range(n):
-        sw = sw_[i]
-        ok = sw > 0.0 or near[i]
-        sw = sw if sw > 0.0 else 1.0
-        mu = sx_[i] / sw
-        var = max(sxx_[i] / sw - mu * mu, 0.0)
-        pos[i] = cols[i] + mu
-        contrast[i] = contrast[i] if ok else 0.0
-        width[i] = np.nan if near[i] else _FWHM_PER_SIGMA * np.sqrt(var)
+        if near[i]:
+            pos[i] = cols[i]
+            width[i] = np.nan
+            continue
+        c = cols[i]
+        mu, contrast[i], slope[i], width[i], n_win = _measure_window(
+            img[i * step, c - hw - 2 : c + hw + 3], hw, thr, peak[i]
+        )
+        pos[i] = c + mu
+        if span_count[i] >= 0:
+            other[i] = span_count[i] > n_win
+    return cols, pos, peak, contrast, slope, width, near, other
+
+
+@njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})
+def _column_peaks(src, step, hw, thr, search_other):  # pragma: no cover - compiled
+    """:func:`_line_peaks` for scan lines that are the columns of ``src`` (C-contiguous).
+
+    Row by row down the frame, every line's first maximum (a strict ``>`` keeps the first)
+    and how many of its pixels exceed ``thr``, all lines at once (vector compares along the
+    stored rows, no transposition); then each line's window down its column.
+    """
+    L, W = src.shape  # L pixels per scan line, W // step lines
+    n = (W + step - 1) // step
+    cols = np.zeros(n, np.int64)
+    pos = np.empty(n, np.float64)
+    peak = np.empty(n, np.float32)
+    contrast = np.zeros(n, np.float32)
+    slope = np.zeros(n, np.float32)
+    width = np.empty(n, np.float32)
+    near = np.zeros(n, np.bool_)
+    other = np.zeros(n, np.bool_)
+    # Blocks of up to 255 rows: the row of each line's maximum within the block and the count
+    # above the level both fit 8 bits (the widest vectors for 8-bit frames); the blocks then
+    # merge in order, a later one only where it is strictly higher.
+    best = src[0, ::step].copy()
+    arg = np.zeros(n, np.int64)
+    above = np.zeros(n, np.int64)
+    b_best = best.copy()
+    b_arg = np.zeros(n, np.uint8)
+    b_above = np.zeros(n, np.uint8)
+    for r0 in range(0, L, 255):
+        b_best[:] = src[r0, ::step]
+        b_arg[:] = 0
+        for i in range(n):
+            b_above[i] = np.uint8(b_best[i] > thr)
+        for r in range(r0 + 1, min(r0 + 255, L)):
+            row = src[r, ::step] if step > 1 else src[r]
+            off = np.uint8(r - r0)
+            for i in range(n):
+                v = row[i]
+                b_arg[i] = off if v > b_best[i] else b_arg[i]
+                b_best[i] = max(b_best[i], v)
+                b_above[i] += np.uint8(v > thr)
+        for i in range(n):
+            if r0 == 0 or b_best[i] > best[i]:
+                best[i] = b_best[i]
+                arg[i] = r0 + np.int64(b_arg[i])
+            above[i] += np.int64(b_above[i])
+    for i in range(n):
+        c = arg[i]
+        cols[i] = c
+        peak[i] = best[i]
+        line = src[:, i * step]
+        if c < hw + 2 or c > L - hw - 3:  # measured by _measure
+            near[i] = True
+            pos[i] = c
+            width[i] = np.nan
+            if search_other and best[i] > thr:
+                n_win = 0
+                for j in range(max(c - hw, 0), min(c + hw + 1, L)):
+                    n_win += line[j] > thr
+                other[i] = above[i] > n_win
+            continue
+        mu, contrast[i], slope[i], width[i], n_win = _measure_window(
+            line[c - hw - 2 : c + hw + 3], hw, thr, best[i]
+        )
+        pos[i] = c + mu
+        other[i] = search_other and best[i] > thr and above[i] > n_win
     return cols, pos, peak, contrast, slope, width, near, other
 
 
@@ -198,8 +283,10 @@ def line_peaks(
 
     Parameters
     ----------
-    img : ndarray, shape (H, W), uint8, uint16 or float32, C-contiguous
-        Working-orientation frame (rows are scan lines) without NaN, ``W >= 2 hw + 5``.
+    img : ndarray, shape (H, W), uint8, uint16 or float32
+        Working-orientation frame (rows are scan lines) without NaN, ``W >= 2 hw + 5``:
+        C-contiguous, or the transposed view of a C-contiguous frame (its columns are then the
+        scan lines, read in place by a kernel that sweeps the stored rows).
     step : int
         Lines ``0, step, 2 step, ...`` are measured (``N = ceil(H / step)`` of them).
     hw : int
@@ -226,13 +313,14 @@ def line_peaks(
     Raises
     ------
     ValueError
-        A frame that is not 2-D, C-contiguous, native uint8 / uint16 / float32 and at least
+        A frame that is not 2-D, of either layout, native uint8 / uint16 / float32 and at least
         ``2 hw + 5`` wide; ``hw`` or ``step`` below 1; a negative ``thr`` for an unsigned frame.
     """
-    if img.ndim != 2 or not img.flags.c_contiguous:
+    if img.ndim != 2 or not (img.flags.c_contiguous or img.flags.f_contiguous):
+        layout = "" if img.ndim != 2 else ", neither C- nor F-contiguous"
         raise ValueError(
-            f"img: expected a C-contiguous 2-D frame, got shape {img.shape}"
-            f" ({'' if img.flags.c_contiguous else 'not '}C-contiguous)"
+            f"img: expected a 2-D frame, C-contiguous or its transposed view, got shape"
+            f" {img.shape}{layout}"
         )
     if img.dtype not in (np.uint8, np.uint16, np.float32) or not img.dtype.isnative:
         raise ValueError(f"img: expected native uint8, uint16 or float32, got {img.dtype}")
@@ -241,11 +329,6 @@ def line_peaks(
     if img.shape[1] < 2 * hw + 5:
         raise ValueError(f"img: expected at least {2 * hw + 5} columns, got {img.shape[1]}")
     W = img.shape[1]
-    words = _NO_WORDS
-    if img.dtype == np.uint8 and W % 8 == 0:
-        words = img.reshape(-1).view(np.uint64)
-        if not words.flags.aligned:
-            words = _NO_WORDS
     # The level in the frame's own type (no conversion per pixel): for integers, v > thr
     # exactly when v > floor(thr).
     thr = float(thr)
@@ -258,6 +341,13 @@ def line_peaks(
         level = img.dtype.type(min(np.floor(thr), top))
     else:
         level = img.dtype.type(thr if search_other else 0.0)
+    if not img.flags.c_contiguous:  # a transposed view: its lines are the stored columns
+        return _column_peaks(img.T, int(step), int(hw), level, search_other)
+    words = _NO_WORDS
+    if img.dtype == np.uint8 and W % 8 == 0:
+        words = img.reshape(-1).view(np.uint64)
+        if not words.flags.aligned:
+            words = _NO_WORDS
     return _line_peaks(img, words, int(step), int(hw), level, search_other)
 
 
@@ -407,8 +497,9 @@ def steger_points(
 
     Parameters
     ----------
-    img : ndarray, shape (H, W), uint8, uint16 or float32, C-contiguous
-        Working-orientation frame (rows are scan lines).
+    img : ndarray, shape (H, W), uint8, uint16 or float32
+        Working-orientation frame (rows are scan lines), C-contiguous or the transposed view
+        of a C-contiguous frame.
     line, pos, slope, level : ndarray, shape (N,)
         Each peak's line, fast-mode centre along it (px), local background slope (grey
         levels per px) and the background's level at the peak (grey levels).
@@ -423,8 +514,10 @@ def steger_points(
         The refined centres along the lines; the fast ones where neither the 2-D nor the 1-D
         step applies.
     """
-    if img.ndim != 2 or not img.flags.c_contiguous:
-        raise ValueError(f"img: expected a C-contiguous 2-D frame, got shape {img.shape}")
+    if img.ndim != 2 or not (img.flags.c_contiguous or img.flags.f_contiguous):
+        raise ValueError(
+            f"img: expected a 2-D frame, C-contiguous or its transposed view, got shape {img.shape}"
+        )
     if img.dtype not in (np.uint8, np.uint16, np.float32) or not img.dtype.isnative:
         raise ValueError(f"img: expected native uint8, uint16 or float32, got {img.dtype}")
     if not sigma > 0:

@@ -56,6 +56,7 @@ def _primary_and_secondary(
         prim, cols, other = compiled
         extra = np.flatnonzero(other)
     else:
+        img = np.ascontiguousarray(img)  # OpenCV reads rows: a transposed view is copied
         cols = img.argmax(axis=1)
         # The primary windows cleared from the candidates: what remains is elsewhere on its line.
         if img.dtype == np.uint8:
@@ -85,10 +86,9 @@ def _primary_and_secondary(
     if len(parts) == 1:
         # One peak per line: the line's brightest is the peak itself, only the noise and
         # absolute thresholds apply.
-        keep = prim.contrast >= thr_contrast
-        if np.all(keep):
+        if prim.contrast.min() >= thr_contrast:
             return prim, False
-        return prim.take(np.flatnonzero(keep)), False
+        return prim.take(np.flatnonzero(prim.contrast >= thr_contrast)), False
     peaks = _Peaks.concat(parts)
 
     # Contrast thresholds: noise, absolute, and relative to the line's brightest peak.

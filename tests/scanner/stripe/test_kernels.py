@@ -138,6 +138,68 @@ def test_kernel_level_between_integers_counts_as_numpy_compares():
         line_peaks(img, 1, 4, -1.0)
 
 
+def _same_lines(got, want):
+    """Two line_peaks results: the same peaks, candidates and border marks; the same measures."""
+    for k in (0, 2, 6, 7):  # cols, peak, near, other
+        np.testing.assert_array_equal(got[k], want[k])
+    near = want[6]
+    for g, w in zip(got[1:6], want[1:6], strict=True):  # pos, peak, contrast, slope, width
+        np.testing.assert_allclose(g[~near], w[~near], rtol=1e-9, atol=1e-6)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_column_kernel_reads_a_transposed_view_as_the_row_kernel_reads_its_copy(kind):
+    img, sat, hw = _frame(kind)
+    view = np.ascontiguousarray(img.T).T  # the same frame, its scan lines stored as columns
+    assert view.flags.f_contiguous and not view.flags.c_contiguous
+    thr = 8.0 * sat / 255.0 + 0.1 * sat
+    for step in (1, 3):
+        _same_lines(line_peaks(view, step, hw, thr), line_peaks(img, step, hw, thr))
+    prim, cols, other = fast._measure_lines(view, hw, sat, thr)
+    want, want_cols, want_other = _numpy_primary(img, hw, sat, thr)
+    np.testing.assert_array_equal(cols, want_cols)
+    np.testing.assert_array_equal(other, want_other)
+    _assert_same_peaks(prim, want)
+
+
+def test_column_kernel_on_random_frames_with_long_lines_and_ties():
+    # Lines longer than the kernel's 255-row blocks, and many equal maxima: the first one,
+    # as the row kernel (and argmax) finds it, whichever block it falls in.
+    rng = np.random.default_rng(23)
+    for dtype, top in ((np.uint8, 6), (np.uint8, 256), (np.uint16, 6), (np.float32, 6)):
+        for length in (40, 255, 256, 700):
+            img = rng.integers(0, top, size=(37, length)).astype(dtype)
+            view = np.ascontiguousarray(img.T).T
+            for step, thr in ((1, 3.5), (2, 3.5), (1, np.inf)):
+                _same_lines(line_peaks(view, step, 3, thr), line_peaks(img, step, 3, thr))
+            np.testing.assert_array_equal(line_peaks(view, 1, 3, 3.5)[0], img.argmax(axis=1))
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_steger_kernel_reads_a_transposed_view(kind):
+    img, sat, hw = _frame(kind)
+    view = np.ascontiguousarray(img.T).T
+    prim = fast._measure_lines(img, hw, sat)[0]
+    saturated = (prim.flags & np.uint8(StripeFlag.SATURATED)) != 0
+    level = prim.peak - prim.contrast
+    args = (prim.line, prim.pos, prim.slope, level, saturated, 1.5)
+    np.testing.assert_allclose(steger_points(view, *args), steger_points(img, *args), atol=1e-9)
+
+
+def test_column_scan_lines_give_the_profile_of_the_transposed_frame():
+    # A frame whose stripe runs left to right, scanned by columns in place, against the same
+    # frame transposed and scanned by rows: the same points with u and v swapped.
+    for kind in KINDS:
+        img, _, _ = _frame(kind)
+        for mode in ("fast", "precise"):
+            got = extract_stripe(np.ascontiguousarray(img.T), mode=mode, orientation="cols")
+            want = extract_stripe(img, mode=mode, orientation="rows")
+            np.testing.assert_array_equal(got.line, want.line)
+            np.testing.assert_array_equal(got.flags, want.flags)
+            np.testing.assert_allclose(got.u, want.v, rtol=0, atol=1e-6)
+            np.testing.assert_allclose(got.v, want.u, rtol=0, atol=1e-6)
+
+
 @pytest.fixture
 def numpy_path(monkeypatch):
     """Run the extractor without the kernel (as where numba cannot be imported)."""
@@ -227,6 +289,9 @@ def test_auto_half_window_is_the_numpy_one(monkeypatch):
         (np.zeros((4, 40), ">u2"), 3, 1, "native"),
         (np.zeros((4, 40), np.float64), 3, 1, "native"),
         (np.zeros((4, 10), np.uint8), 3, 1, "columns"),
+        (np.zeros((4, 10), np.uint8).T, 3, 1, "columns"),
+        (np.zeros((8, 80), np.uint8)[::2, ::2], 3, 1, "neither C- nor F-contiguous"),
+        (np.zeros((2, 4, 40), np.uint8), 3, 1, "2-D"),
         (np.zeros((4, 40), np.uint8), 0, 1, "hw, step"),
         (np.zeros((4, 40), np.uint8), 3, 0, "hw, step"),
     ],
