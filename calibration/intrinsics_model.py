@@ -8,9 +8,12 @@ each candidate model (no distortion, k1, k1 k2, k1 k2 p1 p2, all five) is fitted
 of all folds but one and scored on the views held out (their poses fitted with the
 intrinsics held): that finds the terms a lens needs where the views looked (bias). Where they
 did not look, the held-out views cannot tell; there the model's own projection uncertainty,
-from the folds' fits, says how far extra terms let it wander (variance). Of the models whose held-out error is not worse than
-the best by more than one standard error of the paired per-view difference, the one with the
-smallest projection uncertainty wins.
+from the folds' fits, says how far extra terms let it wander (variance). Of the models whose
+held-out error is not worse than the best by more than one standard error of the paired
+per-view difference, those whose projection uncertainty is within 5 % of the smallest are
+pinned as well as any, and of those the one with the most terms wins (terms that cost no
+variance may still remove a bias the held-out views cannot see: decentring against the
+principal point).
 
 :func:`projection_uncertainty` then maps the 1-sigma uncertainty of the projection of a
 camera-frame point over the image from the intrinsics' covariance: where it is large, more
@@ -215,16 +218,29 @@ def select_distortion_model(
     # medians throughout, so that one held-out view whose pose fit ran away does not decide.
     best = min(scores, key=lambda s: s.held_out_rms_px)
     adequate = [s for s in scores if _paired_excess(s, best) <= 0.0]
-    # Variance: of the adequate models, the one whose projection is best pinned over the image.
-    chosen = min(adequate, key=lambda s: s.uncertainty_rms_px)
+    # Variance: of the adequate models, those whose projection is pinned over the image as
+    # well as the best pinned one's (within 5 %), and of those the one with the most terms.
+    # Terms the views pin that well cost no variance, and they remove a bias the held-out
+    # views cannot see: a decentring term trades against the principal point (a held-out
+    # view's pose turns to absorb both), which turns the camera frame and everything given in
+    # it (0.1 px of p1 moved cy by 2.9 px on a randomised paper cell).
+    least = min(s.uncertainty_rms_px for s in adequate)
+    pinned = [s for s in adequate if s.uncertainty_rms_px <= (1.0 + _PINNED_AS_WELL) * least]
+    chosen = pinned[-1]  # candidates come simplest first
     reason = (
         f"held-out RMS {chosen.held_out_rms_px:.4f} px, not worse than the best held-out "
-        f"({best.name}, {best.held_out_rms_px:.4f} px) beyond one standard error; projection uncertainty "
-        f"RMS {chosen.uncertainty_rms_px:.4f} px, the lowest of "
-        f"{', '.join(s.name for s in adequate)}"
+        f"({best.name}, {best.held_out_rms_px:.4f} px) beyond one standard error; projection "
+        f"uncertainty RMS {chosen.uncertainty_rms_px:.4f} px, within "
+        f"{100 * _PINNED_AS_WELL:.0f} % of the lowest ({least:.4f} px) of "
+        f"{', '.join(s.name for s in adequate)}; the most terms of "
+        f"{', '.join(s.name for s in pinned)}"
     )
     return ModelSelection(chosen.name, tuple(scores), k, reason)
 
+
+#: An adequate model's projection uncertainty this much above the lowest (relative) still
+#: counts as pinned as well.
+_PINNED_AS_WELL = 0.05
 
 #: A held-out mean square this much above the best's (relative) is no real excess.
 _NEGLIGIBLE_EXCESS = 0.005
