@@ -218,23 +218,38 @@ def select_distortion_model(
     # medians throughout, so that one held-out view whose pose fit ran away does not decide.
     best = min(scores, key=lambda s: s.held_out_rms_px)
     adequate = [s for s in scores if _paired_excess(s, best) <= 0.0]
+
     # Variance: of the adequate models, those whose projection is pinned over the image as
     # well as the best pinned one's (within 5 %), and of those the one with the most terms.
     # Terms the views pin that well cost no variance, and they remove a bias the held-out
     # views cannot see: a decentring term trades against the principal point (a held-out
     # view's pose turns to absorb both), which turns the camera frame and everything given in
     # it (0.1 px of p1 moved cy by 2.9 px on a randomised paper cell).
-    least = min(s.uncertainty_rms_px for s in adequate)
-    pinned = [s for s in adequate if s.uncertainty_rms_px <= (1.0 + _PINNED_AS_WELL) * least]
-    chosen = pinned[-1]  # candidates come simplest first
-    reason = (
-        f"held-out RMS {chosen.held_out_rms_px:.4f} px, not worse than the best held-out "
-        f"({best.name}, {best.held_out_rms_px:.4f} px) beyond one standard error; projection "
-        f"uncertainty RMS {chosen.uncertainty_rms_px:.4f} px, within "
-        f"{100 * _PINNED_AS_WELL:.0f} % of the lowest ({least:.4f} px) of "
-        f"{', '.join(s.name for s in adequate)}; the most terms of "
-        f"{', '.join(s.name for s in pinned)}"
+    # A model whose covariance could not be computed is pinned by nothing; if none could be,
+    # the fewest terms.
+    def unc(s: ModelScore) -> float:
+        return s.uncertainty_rms_px if np.isfinite(s.uncertainty_rms_px) else float("inf")
+
+    least = min(unc(s) for s in adequate)
+    pinned = [s for s in adequate if unc(s) <= (1.0 + _PINNED_AS_WELL) * least]
+    held = (
+        f"held-out RMS {{:.4f}} px, not worse than the best held-out ({best.name}, "
+        f"{best.held_out_rms_px:.4f} px) beyond one standard error; "
     )
+    if np.isfinite(least):
+        chosen = max(pinned, key=lambda s: -len(DISTORTION_MODELS[s.name]))
+        reason = held.format(chosen.held_out_rms_px) + (
+            f"projection uncertainty RMS {chosen.uncertainty_rms_px:.4f} px, within "
+            f"{100 * _PINNED_AS_WELL:.0f} % of the lowest ({least:.4f} px) of "
+            f"{', '.join(s.name for s in adequate)}; the most terms of "
+            f"{', '.join(s.name for s in pinned)}"
+        )
+    else:
+        chosen = min(adequate, key=lambda s: -len(DISTORTION_MODELS[s.name]))
+        reason = held.format(chosen.held_out_rms_px) + (
+            f"no projection uncertainty could be computed for "
+            f"{', '.join(s.name for s in adequate)}: the fewest terms"
+        )
     return ModelSelection(chosen.name, tuple(scores), k, reason)
 
 

@@ -17,7 +17,7 @@ from scipy.sparse.csgraph import connected_components
 
 from scanner.core.jit import njit
 from scanner.stripe.estimates import _median
-from scanner.stripe.fast import _measure_lines, _measure_many, _saturation_level
+from scanner.stripe.fast import _contiguous, _measure_lines, _measure_many, _saturation_level
 from scanner.stripe.profile import StripeFlag, StripeOptions, _Peaks
 
 
@@ -56,7 +56,7 @@ def _primary_and_secondary(
         prim, cols, other = compiled
         extra = np.flatnonzero(other)
     else:
-        img = np.ascontiguousarray(img)  # OpenCV reads rows: a transposed view is copied
+        img = _contiguous(img)  # OpenCV reads rows: a transposed view is copied
         cols = img.argmax(axis=1)
         # The primary windows cleared from the candidates: what remains is elsewhere on its line.
         if img.dtype == np.uint8:
@@ -69,6 +69,7 @@ def _primary_and_secondary(
         extra = np.flatnonzero(cv2.reduce(mask, 1, cv2.REDUCE_MAX).reshape(-1))
     parts = [prim]
     if extra.size:
+        img = _contiguous(img)  # rows of a transposed view are read below: one copy
         # The global level is only a first sieve: a further peak must clear its own line's
         # background and the fraction of the line's brightest contrast.
         line_bg = prim.peak[extra] - prim.contrast[extra]

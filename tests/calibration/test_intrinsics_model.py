@@ -8,6 +8,7 @@ import pytest
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from calibration import intrinsics_model
 from calibration.intrinsics import IntrinsicsResult, calibrate_intrinsics
 from scanner.core.conventions import make_transform
 from tests.calibration.test_intrinsics import (
@@ -72,6 +73,33 @@ def test_a_distorted_lens_keeps_its_radial_and_decentring_terms() -> None:
         < record["projection_uncertainty_px"]["median"]
         <= record["projection_uncertainty_px"]["max"]
     )
+
+
+def test_a_decentring_term_the_held_out_views_cannot_see_is_kept() -> None:
+    # p1 = -4e-4 (0.1 px in the image): a held-out view's pose absorbs it with the principal
+    # point, so held-out errors cannot tell; k1 k2 alone put cy 2.4-2.7 px off (seeds 0-2).
+    rng = np.random.default_rng(0)
+    dist = np.array([-0.06, 0.1, -4e-4, 0.0, 0.0])
+    obs = [synthetic_observation(T, K_TRUE, dist, rng, 0.05) for T in poses(20, rng)]
+    res = calibrate_intrinsics(obs, SIZE)
+    radial = calibrate_intrinsics(obs, SIZE, distortion="k1k2")
+    assert res.distortion_model in ("k1k2p1p2", "full")
+    assert np.all(np.abs(res.K[:2, 2] - K_TRUE[:2, 2]) < 0.5)
+    assert abs(radial.K[1, 2] - K_TRUE[1, 2]) > 1.5  # what the simpler model would have given
+    assert "the most terms of" in res.model_selection.reason
+
+
+def test_without_any_projection_uncertainty_the_fewest_terms_win(monkeypatch) -> None:
+    def singular(*args, **kwargs):
+        raise np.linalg.LinAlgError("singular matrix")
+
+    monkeypatch.setattr(intrinsics_model, "projection_uncertainty", singular)
+    rng = np.random.default_rng(0)
+    obs = [synthetic_observation(T, K_TRUE, np.zeros(5), rng, 0.1) for T in poses(8, rng)]
+    selection = calibrate_intrinsics(obs, SIZE).model_selection
+    assert all(s.uncertainty_rms_px == np.inf for s in selection.scores)
+    assert selection.chosen == "none"
+    assert "no projection uncertainty could be computed" in selection.reason
 
 
 def test_uncertainty_map_grows_where_no_view_looked() -> None:
