@@ -91,6 +91,21 @@ def _span_max_count(seg, level):  # pragma: no cover - compiled
     return m, np.int64(n)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _outputs(n):  # pragma: no cover - compiled
+    """The kernels' output arrays for ``n`` lines (as :func:`line_peaks` returns them)."""
+    return (
+        np.zeros(n, np.int64),  # cols
+        np.empty(n, np.float64),  # pos
+        np.empty(n, np.float32),  # peak
+        np.zeros(n, np.float32),  # contrast
+        np.zeros(n, np.float32),  # slope
+        np.empty(n, np.float32),  # width
+        np.zeros(n, np.bool_),  # near
+        np.zeros(n, np.bool_),  # other
+    )
+
+
 @njit(cache=True, nogil=True, inline="always", fastmath={"reassoc", "contract"})
 def _measure_window(win, hw, thr, best):  # pragma: no cover - compiled
     """One window of ``2 hw + 5`` pixels around a peak of value ``best`` (not at a border).
@@ -133,14 +148,7 @@ def _measure_window(win, hw, thr, best):  # pragma: no cover - compiled
 def _line_peaks(img, words, step, hw, thr, search_other):  # pragma: no cover - compiled
     H, W = img.shape
     n = (H + step - 1) // step
-    cols = np.empty(n, np.int64)
-    pos = np.empty(n, np.float64)
-    peak = np.empty(n, np.float32)
-    contrast = np.zeros(n, np.float32)
-    slope = np.zeros(n, np.float32)
-    width = np.empty(n, np.float32)
-    near = np.zeros(n, np.bool_)
-    other = np.zeros(n, np.bool_)
+    cols, pos, peak, contrast, slope, width, near, other = _outputs(n)
     span_count = np.full(n, -1, np.int64)
     words_per_line = W // 8
     # The line's first maximum (as argmax). The stripe moves little from line to line, so each
@@ -218,14 +226,7 @@ def _column_peaks(src, step, hw, thr, search_other):  # pragma: no cover - compi
     """
     L, W = src.shape  # L pixels per scan line, W // step lines
     n = (W + step - 1) // step
-    cols = np.zeros(n, np.int64)
-    pos = np.empty(n, np.float64)
-    peak = np.empty(n, np.float32)
-    contrast = np.zeros(n, np.float32)
-    slope = np.zeros(n, np.float32)
-    width = np.empty(n, np.float32)
-    near = np.zeros(n, np.bool_)
-    other = np.zeros(n, np.bool_)
+    cols, pos, peak, contrast, slope, width, near, other = _outputs(n)
     # Blocks of up to 255 rows: the row of each line's maximum within the block and the count
     # above the level both fit 8 bits (the widest vectors for 8-bit frames); the blocks then
     # merge in order, a later one only where it is strictly higher.
