@@ -216,6 +216,38 @@ def _line_peaks(img, words, step, hw, thr, search_other):  # pragma: no cover - 
     return cols, pos, peak, contrast, slope, width, near, other
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _sweep_rows4(
+    row0, row1, row2, row3, o0, o1, o2, o3, thr, b_best, b_arg, b_above
+):  # pragma: no cover - compiled
+    """Four stored rows (offsets ``o0 .. o3`` in the block, uint8) into the column kernel's
+    block: each line's maximum so far, the offset where it first appeared (a strict ``>``),
+    and the count above ``thr``; everything kept in 8 bits."""
+    for i in range(row0.size):
+        b = b_best[i]
+        a = b_arg[i]
+        c = b_above[i]
+        v = row0[i]
+        a = o0 if v > b else a
+        b = max(b, v)
+        c = np.uint8(c + np.uint8(v > thr))
+        v = row1[i]
+        a = o1 if v > b else a
+        b = max(b, v)
+        c = np.uint8(c + np.uint8(v > thr))
+        v = row2[i]
+        a = o2 if v > b else a
+        b = max(b, v)
+        c = np.uint8(c + np.uint8(v > thr))
+        v = row3[i]
+        a = o3 if v > b else a
+        b = max(b, v)
+        c = np.uint8(c + np.uint8(v > thr))
+        b_best[i] = b
+        b_arg[i] = a
+        b_above[i] = c
+
+
 @njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})
 def _column_peaks(src, step, hw, thr, search_other):  # pragma: no cover - compiled
     """:func:`_line_peaks` for scan lines that are the columns of ``src`` (C-contiguous).
@@ -241,14 +273,26 @@ def _column_peaks(src, step, hw, thr, search_other):  # pragma: no cover - compi
         b_arg[:] = 0
         for i in range(n):
             b_above[i] = np.uint8(b_best[i] > thr)
-        for r in range(r0 + 1, min(r0 + 255, L)):
-            row = src[r, ::step] if step > 1 else src[r]
+        r1 = min(r0 + 255, L)
+        r = r0 + 1
+        if step == 1:  # contiguous rows, four at a time: one load and store of the block each
+            while r + 4 <= r1:
+                o = r - r0
+                _sweep_rows4(
+                    src[r], src[r + 1], src[r + 2], src[r + 3],
+                    np.uint8(o), np.uint8(o + 1), np.uint8(o + 2), np.uint8(o + 3),
+                    thr, b_best, b_arg, b_above,
+                )  # fmt: skip
+                r += 4
+        while r < r1:
+            row = src[r, ::step]
             off = np.uint8(r - r0)
             for i in range(n):
                 v = row[i]
                 b_arg[i] = off if v > b_best[i] else b_arg[i]
                 b_best[i] = max(b_best[i], v)
                 b_above[i] += np.uint8(v > thr)
+            r += 1
         for i in range(n):
             if r0 == 0 or b_best[i] > best[i]:
                 best[i] = b_best[i]
