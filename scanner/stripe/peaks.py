@@ -54,7 +54,7 @@ def _primary_and_secondary(
     compiled = _measure_lines(img, hw, sat, thr_pixel)
     if compiled is not None:
         prim, cols, other = compiled
-        extra = np.flatnonzero(other)
+        extra = np.flatnonzero(other) if np.count_nonzero(other) else cols[:0]
     else:
         img = _contiguous(img)  # OpenCV reads rows: a transposed view is copied
         cols = img.argmax(axis=1)
