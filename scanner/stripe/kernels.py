@@ -217,32 +217,23 @@ def _line_peaks(img, words, step, hw, thr, search_other):  # pragma: no cover - 
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _sweep_step(v, off, thr, b, a, c):  # pragma: no cover - compiled
+    """One pixel ``v`` at block offset ``off`` into a line's maximum ``b``, the offset ``a``
+    where it first appeared (a strict ``>``) and the count ``c`` above ``thr`` (all 8-bit)."""
+    return max(b, v), off if v > b else a, np.uint8(c + np.uint8(v > thr))
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _sweep_rows4(
     row0, row1, row2, row3, o0, o1, o2, o3, thr, b_best, b_arg, b_above
 ):  # pragma: no cover - compiled
     """Four stored rows (offsets ``o0 .. o3`` in the block, uint8) into the column kernel's
-    block: each line's maximum so far, the offset where it first appeared (a strict ``>``),
-    and the count above ``thr``; everything kept in 8 bits."""
+    block, each line's accumulators loaded and stored once."""
     for i in range(row0.size):
-        b = b_best[i]
-        a = b_arg[i]
-        c = b_above[i]
-        v = row0[i]
-        a = o0 if v > b else a
-        b = max(b, v)
-        c = np.uint8(c + np.uint8(v > thr))
-        v = row1[i]
-        a = o1 if v > b else a
-        b = max(b, v)
-        c = np.uint8(c + np.uint8(v > thr))
-        v = row2[i]
-        a = o2 if v > b else a
-        b = max(b, v)
-        c = np.uint8(c + np.uint8(v > thr))
-        v = row3[i]
-        a = o3 if v > b else a
-        b = max(b, v)
-        c = np.uint8(c + np.uint8(v > thr))
+        b, a, c = _sweep_step(row0[i], o0, thr, b_best[i], b_arg[i], b_above[i])
+        b, a, c = _sweep_step(row1[i], o1, thr, b, a, c)
+        b, a, c = _sweep_step(row2[i], o2, thr, b, a, c)
+        b, a, c = _sweep_step(row3[i], o3, thr, b, a, c)
         b_best[i] = b
         b_arg[i] = a
         b_above[i] = c
@@ -288,10 +279,9 @@ def _column_peaks(src, step, hw, thr, search_other):  # pragma: no cover - compi
             row = src[r, ::step]
             off = np.uint8(r - r0)
             for i in range(n):
-                v = row[i]
-                b_arg[i] = off if v > b_best[i] else b_arg[i]
-                b_best[i] = max(b_best[i], v)
-                b_above[i] += np.uint8(v > thr)
+                b_best[i], b_arg[i], b_above[i] = _sweep_step(
+                    row[i], off, thr, b_best[i], b_arg[i], b_above[i]
+                )
             r += 1
         for i in range(n):
             if r0 == 0 or b_best[i] > best[i]:
