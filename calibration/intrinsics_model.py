@@ -202,11 +202,13 @@ def select_distortion_model(
             for j, i in enumerate(test):
                 per_view[i] = float(np.sqrt(np.mean(r[views == j] ** 2)))
         held_out = float(np.sqrt(np.mean(per_view**2)))
+        # A fold whose covariance could not be computed pins nothing: inf (never NaN).
+        unc = float(np.sqrt(np.mean(sigma_ms)))
         scores.append(
             ModelScore(
                 name=name,
                 held_out_rms_px=held_out,
-                uncertainty_rms_px=float(np.sqrt(np.mean(sigma_ms))),
+                uncertainty_rms_px=unc if np.isfinite(unc) else float("inf"),
                 per_view_px=per_view,
                 fit_rms_px=float(np.mean(fit_rms)),
             )
@@ -225,31 +227,28 @@ def select_distortion_model(
     # views cannot see: a decentring term trades against the principal point (a held-out
     # view's pose turns to absorb both), which turns the camera frame and everything given in
     # it (0.1 px of p1 moved cy by 2.9 px on a randomised paper cell).
-    # A model whose covariance could not be computed is pinned by nothing; if none could be,
-    # the fewest terms.
-    def unc(s: ModelScore) -> float:
-        return s.uncertainty_rms_px if np.isfinite(s.uncertainty_rms_px) else float("inf")
-
-    least = min(unc(s) for s in adequate)
-    pinned = [s for s in adequate if unc(s) <= (1.0 + _PINNED_AS_WELL) * least]
-    held = (
-        f"held-out RMS {{:.4f}} px, not worse than the best held-out ({best.name}, "
-        f"{best.held_out_rms_px:.4f} px) beyond one standard error; "
-    )
+    # If no model's uncertainty could be computed, the fewest terms.
+    least = min(s.uncertainty_rms_px for s in adequate)
+    pinned = [s for s in adequate if s.uncertainty_rms_px <= (1.0 + _PINNED_AS_WELL) * least]
+    n_fixed = {name: len(fixed) for name, fixed in DISTORTION_MODELS.items()}
     if np.isfinite(least):
-        chosen = max(pinned, key=lambda s: -len(DISTORTION_MODELS[s.name]))
-        reason = held.format(chosen.held_out_rms_px) + (
+        chosen = min(pinned, key=lambda s: n_fixed[s.name])
+        why = (
             f"projection uncertainty RMS {chosen.uncertainty_rms_px:.4f} px, within "
             f"{100 * _PINNED_AS_WELL:.0f} % of the lowest ({least:.4f} px) of "
             f"{', '.join(s.name for s in adequate)}; the most terms of "
             f"{', '.join(s.name for s in pinned)}"
         )
     else:
-        chosen = min(adequate, key=lambda s: -len(DISTORTION_MODELS[s.name]))
-        reason = held.format(chosen.held_out_rms_px) + (
+        chosen = max(adequate, key=lambda s: n_fixed[s.name])
+        why = (
             f"no projection uncertainty could be computed for "
             f"{', '.join(s.name for s in adequate)}: the fewest terms"
         )
+    reason = (
+        f"held-out RMS {chosen.held_out_rms_px:.4f} px, not worse than the best held-out "
+        f"({best.name}, {best.held_out_rms_px:.4f} px) beyond one standard error; {why}"
+    )
     return ModelSelection(chosen.name, tuple(scores), k, reason)
 
 
