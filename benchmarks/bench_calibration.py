@@ -46,7 +46,12 @@ from calibration.detection.detect import detect_target
 from calibration.extrinsics import estimate_pose
 from calibration.hand_eye import PosedView, calibrate_hand_eye, fix_label_flips
 from calibration.intrinsics import calibrate_intrinsics
-from calibration.light_plane import LaserView, calibrate_light_plane, fit_plane
+from calibration.light_plane import (
+    LaserView,
+    calibrate_light_plane,
+    fit_plane,
+    stripe_points_on_target,
+)
 from calibration.opencv_adapter import AX_XB_METHODS
 from calibration.pipeline import calibrate_session, target_extent_mm
 from scanner.core.camera import CameraModel
@@ -56,8 +61,12 @@ from scanner.core.planes import plane_errors
 from scanner.core.targets import ChessboardTarget, CircleGridTarget
 from scanner.formats.calibration_file import LightPlane
 from scanner.formats.session import read_session
+from scanner.stripe.extract import extract_stripe
 from scanner.virtual_cell.cell import load_cell
 from scanner.virtual_cell.poses import perturb_pose
+from scanner.virtual_cell.random_cell import randomised_cell
+from scanner.virtual_cell.simulate import simulate_cell
+from scanner.virtual_cell.truth import read_truth
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -91,16 +100,11 @@ def hand_eye_errors(x: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
 
 def _cell_config(cell: str, seed: int, randomised: bool) -> Any:
     """The cell ``cell`` (a configs/cells name), its sensor drawn for ``seed`` if randomised."""
-    from scanner.virtual_cell.random_cell import randomised_cell
-
     config = load_cell(cell)
     return randomised_cell(config, np.random.default_rng(10_000 + seed)) if randomised else config
 
 
 def _simulate(cell: Any, out: Path, target: str | None, seed: int) -> Any:
-    from scanner.virtual_cell.simulate import simulate_cell
-    from scanner.virtual_cell.truth import read_truth
-
     if not (out / "truth.json").is_file():
         simulate_cell(cell, out, seed=seed, target=target, sessions=("calibration",), workers=2)
     truth = read_truth(out / "truth.json")
@@ -125,8 +129,6 @@ class Anchor:
 
 def opencv_anchor(session_dir: Path) -> Anchor:
     """OpenCV chessboard calibration at the same poses, five AX=XB solvers, Horus plane fit."""
-    from scanner.stripe.extract import extract_stripe
-
     session = read_session(session_dir)
     target = session.target
     obj = target.object_points().astype(np.float32)  # type: ignore[union-attr]
@@ -162,8 +164,6 @@ def opencv_anchor(session_dir: Path) -> Anchor:
             continue
         prof = extract_stripe(session.load_laser_image(f), mode="fast")
         ct = poses[f.id]
-        from calibration.light_plane import stripe_points_on_target
-
         p = stripe_points_on_target(np.column_stack([prof.u, prof.v]), cam, ct)
         p = p[np.all(np.isfinite(p), axis=1)]
         pt = (p - ct[:3, 3]) @ ct[:3, :3]
@@ -349,8 +349,6 @@ def bench_linelight(root: Path) -> dict[str, float]:
     folder = root / "zhaocongyang_linelight"
     target = CircleGridTarget((7, 7), 37.5)
     obs, laser = [], []
-    from scanner.stripe.extract import extract_stripe
-
     for i in range(12):
         img = load_gray_image(folder / "calib_picture" / f"calib{i}.jpg")
         obs.append(detect_target(img, target))

@@ -7,7 +7,9 @@ and the background-subtracted centre of gravity and second moment. It also tells
 pixel outside the primary window clears the candidate threshold, which is all the rare
 multi-peak lines need to be searched further with NumPy. Windows that reach the image border
 are only marked: like every other uncommon peak they are measured by
-:func:`scanner.stripe.fast._measure`.
+:func:`scanner.stripe.fast._measure`. Given the transposed view of a frame (scan lines stored
+as its columns), it runs a column kernel instead that sweeps the stored rows for all lines at
+once: no transposition.
 
 :func:`steger_points` does per point what :func:`scanner.stripe.precise._refine_precise` does
 with NumPy for all points at once: the smoothed image's gradient and Hessian at the fast
