@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calibration.detection.conics import intersect_lines
-from calibration.detection.ray_kernels import label_rays
+from calibration.detection.ray_kernels import FIT_TOL_FRACTION, FIT_TOL_PX, label_rays
 
 # --------------------------------------------------------------------------------------------
 # Image preparation
@@ -61,9 +61,13 @@ def _lit_level(bg: NDArray) -> float:
     return float(np.median(bright)) if bright.size else top
 
 
-def _live_mask(d: NDArray, bg: NDArray) -> NDArray:
-    """Pixels where a printed line could be seen: lit, not clipped at the white level."""
+def _live_mask(d: NDArray, bg: NDArray, hidden: NDArray | None = None) -> NDArray:
+    """Pixels where a printed line could be seen: lit, not clipped at the white level, not
+    ``hidden`` (a laser stripe or glare, whose darkness is 0 without noise: a tile it fills
+    would otherwise learn a threshold far below the paper's noise)."""
     live = bg >= 0.3 * _lit_level(bg)
+    if hidden is not None:
+        live &= ~hidden
     top = float(bg.max())
     flat = bg >= top * (1 - 1e-6)
     if flat.mean() > 0.01:  # a clipped (saturated) region: no noise there to learn from
@@ -111,14 +115,14 @@ def _bright_mask(img: NDArray, kernel_px: int) -> NDArray:
     return bright.astype(np.float64)
 
 
-def _noise_threshold(d: NDArray, bg: NDArray | None = None) -> float:
+def _noise_threshold(d: NDArray, bg: NDArray | None = None, hidden: NDArray | None = None) -> float:
     """Darkness above which a pixel is not noise: median + 6 MAD over the lit target area.
 
     The statistics are those of the lit, unclipped pixels (``bg`` given) only: dark or
     saturated surroundings filling most of the frame carry no paper noise, and over the
     whole image they would drive the MAD to zero.
     """
-    sel = d[_live_mask(d, bg)] if bg is not None else d.ravel()
+    sel = d[_live_mask(d, bg, hidden)] if bg is not None else d.ravel()
     if sel.size < 100:
         sel = d.ravel()
     step = max(1, sel.size // 200_000)
@@ -135,7 +139,7 @@ def _quiet() -> Iterator[None]:
         yield
 
 
-def _threshold_map(d: NDArray, bg: NDArray, tile_px: int) -> NDArray:
+def _threshold_map(d: NDArray, bg: NDArray, tile_px: int, hidden: NDArray | None = None) -> NDArray:
     """Per-pixel darkness threshold: median + 6 MAD of ``d`` in tiles of the lit area.
 
     Noise and paper grain differ between the card and its surroundings and over the card
@@ -144,8 +148,8 @@ def _threshold_map(d: NDArray, bg: NDArray, tile_px: int) -> NDArray:
     (:func:`_noise_threshold`). The tile grid is interpolated to every pixel.
     """
     h, w = d.shape
-    glob = _noise_threshold(d, bg)
-    live = _live_mask(d, bg)
+    glob = _noise_threshold(d, bg, hidden)
+    live = _live_mask(d, bg, hidden)
     t = max(16, int(tile_px))
     ny, nx = max(1, h // t), max(1, w // t)
     th, tw = (h // ny) // 2 * 2, (w // nx) // 2 * 2
@@ -257,12 +261,12 @@ def _label_rays(
         diff = np.abs((angles - a + np.pi) % (2 * np.pi) - np.pi)
         keep &= diff > np.radians(6)
     angles = angles[keep]
-    count, peaks, err = label_rays(d, c, angles, radii, thr)
+    count, peaks, err, first_ring = label_rays(d, c, angles, radii, thr)
     last = peaks[np.arange(len(angles)), np.maximum(count - 1, 0)]
-    ok = (count >= 3) & (err <= 1.5 + 0.01 * np.nan_to_num(last))
+    ok = (count >= 3) & (err <= FIT_TOL_PX + FIT_TOL_FRACTION * np.nan_to_num(last))
     per_ring: list[list[tuple[float, NDArray]]] = [[] for _ in radii]
     for i in np.flatnonzero(ok):
         dirv = np.array([np.cos(angles[i]), np.sin(angles[i])])
         for k in range(count[i]):
-            per_ring[k].append((float(angles[i]), c + peaks[i, k] * dirv))
+            per_ring[first_ring[i] + k].append((float(angles[i]), c + peaks[i, k] * dirv))
     return per_ring, int(np.sum(count[ok] - 2))
