@@ -57,15 +57,21 @@ from calibration.detection.concentric_rings import (
     _conic_axes_ratio,
     _conic_normals,
     _consistent_rings,
+    _diameter_lines,
     _ellipse_ok,
     _line_evidence,
+    _lines_angle_deg,
     _min_spacing_px,
     _pencil_centre,
+    _pencil_offsets,
+    _pencil_predictions,
     _perimeter_px,
+    _prune_by_pencil,
     _refine_axes,
     _refine_ring,
     _relabel_by_ratios,
     _unit_line,
+    pencil_tolerance_px,
 )
 from calibration.detection.conics import (
     fit_conic,
@@ -206,11 +212,12 @@ def _detect_with_kernel(
     # printed line keeps most of its darkness.
     d, bg = _darkness(cv2.GaussianBlur(img, (0, 0), 1.0), kernel)
     # Darkness over its local noise threshold: > 1 where a printed line may be.
-    z = d / _threshold_map(d, bg, 4 * kernel)
+    hidden = _bright_mask(img, kernel) > 0
+    z = d / _threshold_map(d, bg, 4 * kernel, hidden)
     thr = 1.0
     mask = (z > thr).astype(np.uint8) * 255
     # Rays stop where the print is hidden (laser stripe, glare): see label_rays.
-    z_rays = np.where(_bright_mask(img, kernel) > 0, -1.0, z)
+    z_rays = np.where(hidden, -1.0, z)
     # Clutter's long lines can outvote a small target's diameters: a generous number of the
     # strongest lines is tried (a crossing without rings around it costs little).
     lines = _hough_lines(mask, min_votes=int(0.08 * min(h, w)), max_lines=16)
@@ -273,6 +280,7 @@ def _detect_with_kernel(
     # -- sub-pixel rings
     axis_lines = [l1 / np.linalg.norm(l1[:2]), l2 / np.linalg.norm(l2[:2])]
     rings: dict[int, tuple[NDArray, NDArray, NDArray]] = {}
+    scanned_at: NDArray | None = None
     for _ in range(2):
         rings = {}
         n_rays = int(np.clip(_perimeter_px(conics[max(conics)], c) / 3.0, 180, 1440))
@@ -305,8 +313,8 @@ def _detect_with_kernel(
         # points) is dropped rather than allowed to name wrong points.
         conics = {k: v[1] for k, v in rings.items()}
         keep = _consistent_rings(conics, radii)
-        rings = {k: rings[k] for k in keep}
-        conics = {k: conics[k] for k in keep}
+        rings = _prune_by_pencil({k: rings[k] for k in keep}, radii, c, spacing_px)
+        conics = {k: v[1] for k, v in rings.items()}
         if len(rings) < s.min_rings:
             return TargetObservation.failed(
                 f"no ring pencil found: {len(rings)} ring conics agree with the spec's radius "
@@ -321,8 +329,14 @@ def _detect_with_kernel(
                 size,
                 KIND,
             )
+        # The diameters through the refined centre (the coarse one may be pixels off, and a
+        # line through it then misses a thin diameter; the Hough pair that gave it may hold
+        # a stripe's edge), then refined from the rings' geometry.
+        if scanned_at is None or np.linalg.norm(c_new - scanned_at) > 0.5:
+            scanned = _diameter_lines(z_rays, c_new, conics, line_px, spacing_px)
+            if scanned is not None:
+                axis_lines, scanned_at = scanned, c_new
         c = c_new
-        # Refine the diameter lines from the rings' geometry.
         axis_res = _refine_axes(
             coef, axis_lines, c, conics, radii, half_window, line_px, (w, h), bright
         )
@@ -331,6 +345,10 @@ def _detect_with_kernel(
                 "diameter lines not measurable between the rings", size, KIND
             )
         axis_lines, axis_pts = axis_res
+        if _lines_angle_deg(*axis_lines) < 12.0:
+            return TargetObservation.failed(
+                "diameter lines not measurable: both converged on one line", size, KIND
+            )
         # (A ring the coarse ray labelling missed is not recovered: only measured rings count.)
 
     progress[0] = 4
@@ -369,7 +387,7 @@ def _detect_with_kernel(
     paper = float(np.median(_sample(bg, ring_pts[:, 0], ring_pts[:, 1])))
     # Both diameters must be printed lines, not any two lines through the centre.
     for ln, ends_ln in zip(axis_lines, ends, strict=True):
-        ev = _line_evidence(d, ln, center, ends_ln, 2.0 * half_window + 2.0, line_dark)
+        ev = _line_evidence(d, ln, center, ends_ln, 2.0 * half_window + 2.0, line_dark, bright)
         if ev < 0.3 * line_dark:
             return TargetObservation.failed(
                 f"diameter line not printed: darkness {ev:.2f} on it against "
@@ -403,6 +421,9 @@ def _detect_with_kernel(
     names = ["O"]
     for k in sorted(conics):
         r = radii[k]
+        # The other rings' pencil checks every named point (see below).
+        predicted = _pencil_predictions(conics, radii, k)
+        bias = float(np.median(_pencil_offsets(predicted, rings[k][0]))) if predicted else 0.0
         for axis_name, ln, sgn, axis_idx in (("x", xline, sign_x, 0), ("y", yline, sign_y, 1)):
             pts = line_conic_intersections(ln, conics[k])
             if len(pts) != 2:
@@ -416,6 +437,16 @@ def _detect_with_kernel(
                     nrm = _conic_normals(conics[k], p[None])[0]
                     ring_line = np.array([nrm[0], nrm[1], -float(nrm @ p)])  # the tangent
                     reach = max(15.0, 0.35 * float(np.linalg.norm(p - center)))
+                    # Only where the ring was measured near the crossing: a conic extrapolated
+                    # over a part hidden by a stripe or cut by the border may be far off
+                    # there, though its ratios agree with the other rings.
+                    if np.min(np.linalg.norm(ring_pts - p, axis=1)) > reach:
+                        continue
+                    # ... and where the other rings' pencil puts this ring there too
+                    if predicted and abs(
+                        float(_pencil_offsets(predicted, p[None])[0]) - bias
+                    ) > pencil_tolerance_px(spacing_px):
+                        continue
                     biased = _locally_biased(
                         sampson_distances(conics[k], ring_pts), ring_pts, p, reach
                     ) or _locally_biased(apts @ ln[:2] + ln[2], apts, p, reach)

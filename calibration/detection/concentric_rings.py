@@ -16,7 +16,13 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
-from calibration.detection.conics import fit_conic, fit_line, pencil_center, sampson_distances
+from calibration.detection.conics import (
+    fit_conic,
+    fit_line,
+    pencil_center,
+    pencil_member,
+    sampson_distances,
+)
 from calibration.detection.ray_kernels import cubic_spline_at
 
 __all__ = ["ConcentricDetectorSettings"]
@@ -297,6 +303,114 @@ def _refine_ring(
     return found, conic_new, np.array([rms])
 
 
+def _diameter_lines(
+    z: NDArray, c: NDArray, conics: dict[int, NDArray], line_px: float, spacing_px: float
+) -> list[NDArray] | None:
+    """The two diameter lines through the pencil's centre ``c``, from an angular scan.
+
+    For every direction through ``c`` (steps of about half a line width at the outer ring,
+    at most 1440 over 180 deg; samples every other pixel along it)
+    the mean darkness ``z`` (in units of its noise threshold; negative where the print is
+    hidden, which is left out) on the paper between the rings, inside the largest ring; the
+    diameters are the two darkest directions at least 12 deg apart, each dark (over the
+    threshold) on at least 30 % of its samples (two
+    perpendicular diameters stay over 45 deg apart in the image up to a 65 deg tilt). The
+    Hough lines that gave the candidate centre may be a laser stripe's edge or clutter
+    through it; these are the print's. None when no two directions are dark on most of
+    their length.
+
+    Returns
+    -------
+    list of two ndarray, shape (3,), or None
+        Homogeneous lines ``(a, b, c)`` with ``a^2 + b^2 = 1``.
+    """
+    h, w = z.shape
+    outer = conics[max(conics)]
+    r_out = _perimeter_px(outer, c) / (2 * np.pi)
+    n_ang = int(np.clip(np.ceil(np.pi * r_out / max(0.5 * line_px, 0.5)), 360, 1440))
+    theta = np.arange(n_ang) * (np.pi / n_ang)
+    dirs = np.column_stack([np.cos(theta), np.sin(theta)])
+    both = np.vstack([dirs, -dirs])
+    ts = np.array([_conic_point_on_ray(conics[k], c, both) for k in sorted(conics)])
+    t_out = ts[-1]
+    if not np.isfinite(t_out).any():
+        return None
+    step = 2.0  # (a line is long: every other px)
+    t = np.arange(1.0, float(np.nanmax(t_out)) + 1.0, step)
+    clear = max(1.0, min(0.5 * line_px + 2.0, 0.35 * spacing_px))
+    with np.errstate(invalid="ignore"):
+        valid = (t[None, :] < t_out[:, None]) & (t[None, :] > max(2.0 * line_px + 3.0, clear))
+    # samples within ``clear`` of a ring's crossing are left out (each ring's few, by index)
+    rows = np.arange(len(both))[:, None]
+    reach = np.arange(-int(clear / step) - 1, int(clear / step) + 2)
+    for tk in ts:
+        near = np.floor((np.nan_to_num(tk, nan=-1e6) - t[0]) / step).astype(np.intp)[:, None]
+        idx = near + reach[None, :]
+        hit = (idx >= 0) & (idx < len(t))
+        hit &= np.abs(t[np.clip(idx, 0, len(t) - 1)] - tk[:, None]) <= clear
+        valid[np.broadcast_to(rows, idx.shape)[hit], idx[hit]] = False
+    u = np.rint(c[0] + t[None, :] * both[:, 0:1]).astype(np.intp)
+    v = np.rint(c[1] + t[None, :] * both[:, 1:2]).astype(np.intp)
+    valid &= (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    zs = z[np.clip(v, 0, h - 1), np.clip(u, 0, w - 1)]
+    valid &= zs >= 0
+
+    def per_line(x: NDArray) -> NDArray:
+        total = np.where(valid, x, 0).sum(axis=1)
+        return total[:n_ang] + total[n_ang:]
+
+    n_valid = per_line(np.ones_like(zs))
+    usable = n_valid >= 10
+    dark = np.where(usable, per_line(zs > 1.0) / np.maximum(n_valid, 1), 0.0)
+    # where on the line: the mean darkness (clipped), which peaks on the line's middle
+    # where the share of dark samples is flat
+    strength = np.where(usable, per_line(np.clip(zs, 0.0, 4.0)) / np.maximum(n_valid, 1), 0.0)
+    strength = (np.roll(strength, 1) + 2 * strength + np.roll(strength, -1)) / 4
+    lines = []
+    taken = np.zeros(n_ang, bool)
+    for _ in range(2):
+        i = int(np.argmax(np.where(taken, -1.0, strength)))
+        if dark[i] < 0.3 or dark[i] < 3 * float(np.median(dark)):
+            return None
+        a, b0, cc = strength[i - 1], strength[i], strength[(i + 1) % n_ang]
+        curv = a - 2 * b0 + cc
+        off = 0.5 * (a - cc) / curv if curv < 0 else 0.0
+        ang = (i + off) * (np.pi / n_ang)
+        normal = np.array([-np.sin(ang), np.cos(ang)])
+        lines.append(np.array([normal[0], normal[1], -float(normal @ c)]))
+        near = np.abs((theta - ang + np.pi / 2) % np.pi - np.pi / 2) < np.radians(12)
+        taken |= near
+    return lines
+
+
+def _lines_angle_deg(line_a: NDArray, line_b: NDArray) -> float:
+    """The angle between two homogeneous image lines, deg (0 to 90)."""
+    na, nb = _unit_line(line_a)[:2], _unit_line(line_b)[:2]
+    return float(np.degrees(np.arccos(np.clip(abs(float(na @ nb)), 0.0, 1.0))))
+
+
+def _normal_clear_of(conic: NDArray, points: NDArray, normal: NDArray, reach: float) -> NDArray:
+    """Whether the segments ``p + tau normal``, ``|tau| <= reach``, through each of the
+    ``(M, 2)`` points stay off the conic (``(M,)`` bool)."""
+    x = np.column_stack([points, np.ones(len(points))])
+    nh = np.array([normal[0], normal[1], 0.0])
+    a = float(nh @ conic @ nh)
+    b = x @ (conic @ nh)
+    cc = np.einsum("ij,jk,ik->i", x, conic, x)
+    disc = b * b - a * cc
+    clear = disc < 0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sq = np.sqrt(np.maximum(disc, 0.0))
+        if abs(a) < 1e-300:
+            taus = [np.where(b != 0, -cc / (2 * b), np.inf)]
+        else:
+            taus = [(-b - sq) / a, (-b + sq) / a]
+    near = np.zeros(len(points), bool)
+    for tau in taus:
+        near |= np.abs(tau) <= reach
+    return clear | ~near
+
+
 def _refine_axes(
     coef: NDArray,
     axis_lines: list[NDArray],
@@ -349,33 +463,53 @@ def _refine_axes(
             & (pts[:, 1] < h - half_window - 4)
         )
         pts = pts[inside]
+        search = max(1.0, 2 * half_window)
+        # The centroid's window across the diameter must not reach a ring: where a ring runs
+        # nearly along the diameter (a steep tilt puts its flank there) it would, though the
+        # sample is well clear of the crossing along the line, and pull the centre towards
+        # it. (A ring further out but within the search is the line fit's outlier to drop.)
+        reach = half_window + 0.5 * line_px + 1.5
+        for conic in conics.values():
+            pts = pts[_normal_clear_of(conic, pts, ln[:2], reach)]
         if len(pts) < 4:
             return None
         normals = np.tile(ln[:2], (len(pts), 1))
         off, contrast, good = _locate_centres(
-            coef, pts, normals, half_window, max(1.0, 2 * half_window), 0.125, bright
+            coef, pts, normals, half_window, search, 0.125, bright
         )
         med = np.median(contrast[good]) if good.any() else 0.0
         good &= contrast > 0.5 * med
         found = (pts + off[:, None] * normals)[good]
         if len(found) < 4:
             return None
-        line = fit_line(found)
-        for _ in range(3):
+        # Trimmed from the line through the centre it came as (right to a line's width), not
+        # from a first fit to all points: centres caught by a ring's flank along a stretch of
+        # the diameter would turn that fit, and the trimming would keep them.
+        line, kept = ln, found
+        for _ in range(4):
             dist = found @ line[:2] + line[2]
-            sig = 1.4826 * np.median(np.abs(dist)) + 1e-3
-            keep = np.abs(dist) < max(4 * sig, 0.05)
-            if keep.all() or keep.sum() < 4:
+            sig = 1.4826 * float(np.median(np.abs(dist))) + 1e-3
+            keep = np.abs(dist) < max(3 * sig, 0.5)
+            if keep.sum() < 4:
                 break
-            found = found[keep]
-            line = fit_line(found)
+            same = len(kept) == keep.sum() and np.array_equal(kept, found[keep])
+            kept = found[keep]
+            line = fit_line(kept)
+            if same:
+                break
         new_lines.append(line)
-        new_pts.append(found)
+        new_pts.append(kept)
     return new_lines, new_pts
 
 
 def _line_evidence(
-    d: NDArray, line: NDArray, c: NDArray, ends_px: NDArray, offset_px: float, ring_dark: float
+    d: NDArray,
+    line: NDArray,
+    c: NDArray,
+    ends_px: NDArray,
+    offset_px: float,
+    ring_dark: float,
+    bright: NDArray | None = None,
 ) -> float:
     """Median darkness on ``line`` minus that on its two parallels ``offset_px`` away.
 
@@ -386,6 +520,8 @@ def _line_evidence(
     parallels are on paper (darker than half ``ring_dark``, the rings' darkness, on neither)
     count: there a printed diameter shows its own darkness, a line through the centre that
     is not a diameter shows none. Closely spaced thick rings would otherwise fill the median.
+    Samples where the print is hidden (``bright``, a laser stripe along the line) on the line
+    or its parallels tell nothing and are left out.
     """
     h, w = d.shape
     ln = _unit_line(line)
@@ -405,14 +541,22 @@ def _line_evidence(
     if len(pts) < 10:
         return 0.0
 
-    def along(p: NDArray) -> NDArray:
-        return ndimage.map_coordinates(d, [p[:, 1], p[:, 0]], order=1)
+    def along(img: NDArray, p: NDArray) -> NDArray:
+        return ndimage.map_coordinates(img, [p[:, 1], p[:, 0]], order=1)
 
-    side_a, side_b = along(pts + offset_px * n), along(pts - offset_px * n)
-    paper = (side_a < 0.5 * ring_dark) & (side_b < 0.5 * ring_dark)
+    sides = np.stack([along(d, pts + offset_px * n), along(d, pts - offset_px * n)])
+    seen = np.ones_like(sides, dtype=bool)
+    on_line = np.ones(len(pts), dtype=bool)
+    if bright is not None:
+        seen[0] = along(bright, pts + offset_px * n) == 0
+        seen[1] = along(bright, pts - offset_px * n) == 0
+        on_line = along(bright, pts) == 0
+    # each sample against the parallels that are seen (one, where a stripe covers the other)
+    paper = on_line & seen.any(axis=0) & np.all((sides < 0.5 * ring_dark) | ~seen, axis=0)
     if np.count_nonzero(paper) < 10:
         return 0.0
-    return float(np.median(along(pts[paper]) - 0.5 * (side_a + side_b)[paper]))
+    side = np.sum(np.where(seen, sides, 0.0), axis=0) / np.maximum(seen.sum(axis=0), 1)
+    return float(np.median(along(d, pts[paper]) - side[paper]))
 
 
 def _pair_agrees(conics: dict[int, NDArray], radii: NDArray, i: int, j: int) -> bool:
@@ -485,3 +629,92 @@ def _consistent_rings(conics: dict[int, NDArray], radii: NDArray) -> list[int]:
         if votes and sum(votes) > 0.5 * len(votes):
             keep.append(i)
     return keep
+
+
+def pencil_tolerance_px(spacing_px: float) -> float:
+    """How far a ring's point may be from where the other rings' pencil puts it, px (beside
+    the ring's own offset from it): well below a ring spacing, above the lens's share."""
+    return max(1.5, 0.25 * spacing_px)
+
+
+def _pencil_predictions(conics: dict[int, NDArray], radii: NDArray, k: int) -> list[NDArray]:
+    """Ring ``k``'s conic as the pencil of each pair of the four rings nearest it predicts
+    it (:func:`pencil_member`); empty with fewer than two other rings."""
+    others = sorted((i for i in conics if i != k), key=lambda i: abs(radii[i] - radii[k]))[:4]
+    predicted = []
+    for i, j in itertools.combinations(others, 2):
+        try:
+            member = pencil_member(conics[i], radii[i], conics[j], radii[j], radii[k])
+        except np.linalg.LinAlgError:
+            continue
+        if np.all(np.isfinite(member)):
+            predicted.append(member)
+    return predicted
+
+
+def _pencil_offsets(predicted: list[NDArray], points_px: NDArray) -> NDArray:
+    """Signed Sampson distance of ``(M, 2)`` points to the predicted conics, the median over
+    them (one wrong ring among the pairs does not decide), px."""
+    return np.median([sampson_distances(m, points_px) for m in predicted], axis=0)
+
+
+def _prune_by_pencil(
+    rings: dict[int, tuple[NDArray, NDArray, NDArray]],
+    radii: NDArray,
+    c: NDArray,
+    spacing_px: float,
+) -> dict[int, tuple[NDArray, NDArray, NDArray]]:
+    """Each ring's points kept only where the other rings' pencil puts that ring.
+
+    A ring whose points follow something else over part of its length (a stripe's halo
+    where the ring is hidden, a neighbour's blur) gives a conic whose radius ratio may still
+    agree with the others while its curve is pixels off there, and a point named on it
+    would be wrong. The other rings predict this one (:func:`pencil_member`, from the pairs
+    of the nearest four, the median per point); points whose Sampson distance to the
+    prediction differs from the ring's median by more than :func:`pencil_tolerance_px` (or
+    4 sigma of that difference) are dropped and the conic refitted. A ring left with fewer than 16 points, or
+    whose refitted conic no longer surrounds ``c``, is dropped.
+
+    Parameters
+    ----------
+    rings : dict
+        Ring index -> (points ``(M, 2)`` px, conic ``(3, 3)``, ``[rms]``).
+    radii : ndarray, shape (K,)
+        The spec's radii, mm.
+    c : ndarray, shape (2,)
+        The image of O.
+    spacing_px : float
+        The smallest ring spacing in the image.
+
+    Returns
+    -------
+    dict
+        The same form; unchanged where fewer than three rings are given.
+    """
+    keys = sorted(rings)
+    if len(keys) < 3:
+        return rings
+    conics = {k: v[1] for k, v in rings.items()}
+    out = {}
+    for k in keys:
+        pts = rings[k][0]
+        predicted = _pencil_predictions(conics, radii, k)
+        if not predicted:
+            out[k] = rings[k]
+            continue
+        off = _pencil_offsets(predicted, pts)
+        off = off - np.median(off)
+        sigma = 1.4826 * float(np.median(np.abs(off)))
+        keep = np.abs(off) < max(pencil_tolerance_px(spacing_px), 4.0 * sigma)
+        if keep.all():
+            out[k] = rings[k]
+            continue
+        if np.count_nonzero(keep) < 16:
+            continue
+        pts = pts[keep]
+        conic = fit_conic(pts)
+        if not _ellipse_ok(conic, c):
+            continue
+        rms = np.array([float(np.sqrt(np.mean(sampson_distances(conic, pts) ** 2)))])
+        out[k] = (pts, conic, rms)
+    return out

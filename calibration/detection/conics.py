@@ -23,6 +23,7 @@ __all__ = [
     "intersect_lines",
     "line_conic_intersections",
     "pencil_center",
+    "pencil_member",
     "sampson_distances",
 ]
 
@@ -145,6 +146,36 @@ def pencil_center(c1: NDArray, c2: NDArray) -> tuple[NDArray, float]:
     center = np.real(v[:, k])
     ratio = float(np.real(w[k]) / np.real(0.5 * (w[i] + w[j])))
     return center / (center[2] if abs(center[2]) > 1e-300 else 1.0), ratio
+
+
+def pencil_member(c1: NDArray, r1: float, c2: NDArray, r2: float, r: float) -> NDArray:
+    """Image of the circle of radius ``r`` concentric with two whose image conics are given.
+
+    The images of concentric circles of radius ``r`` are ``A - r^2 B`` for one pair of
+    conics (the circular points' and the vanishing line's, mapped into the image). Each
+    given conic carries its own unknown scale; their ratio is the repeated eigenvalue of
+    ``c1^-1 c2``, which puts both on one scale and gives ``A`` and ``B``.
+
+    Parameters
+    ----------
+    c1, c2 : ndarray, shape (3, 3)
+        Image conics of the circles of radii ``r1`` and ``r2`` (any scale, ``r1 != r2``).
+    r1, r2, r : float
+        The radii (any unit, the same for all three).
+
+    Returns
+    -------
+    ndarray, shape (3, 3)
+        The conic of radius ``r``, unit Frobenius norm.
+    """
+    w = np.linalg.eigvals(np.linalg.solve(c1, c2))
+    pairs = [(0, 1), (0, 2), (1, 2)]
+    i, j = min(pairs, key=lambda t: abs(w[t[0]] - w[t[1]]))
+    rho = float(np.real(0.5 * (w[i] + w[j])))
+    g1 = rho * np.asarray(c1, dtype=np.float64)
+    b = (g1 - c2) / (r2**2 - r1**2)
+    member = g1 + r1**2 * b - r**2 * b
+    return member / np.linalg.norm(member)
 
 
 def harmonic_conjugate(a: ArrayLike, b: ArrayLike, o: ArrayLike) -> NDArray:

@@ -7,6 +7,7 @@ from calibration.detection.conics import (
     harmonic_conjugate,
     line_conic_intersections,
     pencil_center,
+    pencil_member,
     sampson_distances,
 )
 
@@ -54,6 +55,18 @@ def test_pencil_center_is_image_of_circle_centre_not_ellipse_centre():
     # The ellipse centre is elsewhere under perspective (why it is never used).
     ellipse_centre = -np.linalg.solve(c2[:2, :2], c2[:2, 2])
     assert np.linalg.norm(ellipse_centre - o[:2] / o[2]) > 1.0
+
+
+@pytest.mark.parametrize("r", [10.0, 55.0, 120.0])
+def test_pencil_member_is_the_image_of_another_concentric_circle(r):
+    # from two members at their own (arbitrary, even negative) scales
+    H = _homography()
+    _, c1 = _circle_image(H, 30.0)
+    _, c2 = _circle_image(H, 80.0)
+    member = pencil_member(-2.5 * c1, 30.0, 0.3 * c2, 80.0, r)
+    pts, truth = _circle_image(H, r)
+    assert np.max(np.abs(sampson_distances(member, pts))) < 1e-6
+    np.testing.assert_allclose(np.abs(member), np.abs(truth), atol=1e-9)
 
 
 def test_harmonic_conjugate_gives_vanishing_point():
