@@ -440,7 +440,8 @@ def _detect_with_kernel(
                     # Only where the ring was measured near the crossing: a conic extrapolated
                     # over a part hidden by a stripe or cut by the border may be far off
                     # there, though its ratios agree with the other rings.
-                    if np.min(np.linalg.norm(ring_pts - p, axis=1)) > reach:
+                    seen = min(reach, max(15.0, 3.0 * spacing_px))
+                    if np.min(np.linalg.norm(ring_pts - p, axis=1)) > seen:
                         continue
                     # ... and where the other rings' pencil puts this ring there too
                     if predicted and abs(

@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calibration.detection.conics import intersect_lines
-from calibration.detection.ray_kernels import FIT_TOL_FRACTION, FIT_TOL_PX, label_rays
+from calibration.detection.ray_kernels import label_rays
 
 # --------------------------------------------------------------------------------------------
 # Image preparation
@@ -261,12 +261,12 @@ def _label_rays(
         diff = np.abs((angles - a + np.pi) % (2 * np.pi) - np.pi)
         keep &= diff > np.radians(6)
     angles = angles[keep]
-    count, peaks, err, first_ring = label_rays(d, c, angles, radii, thr)
+    count, peaks, err = label_rays(d, c, angles, radii, thr)
     last = peaks[np.arange(len(angles)), np.maximum(count - 1, 0)]
-    ok = (count >= 3) & (err <= FIT_TOL_PX + FIT_TOL_FRACTION * np.nan_to_num(last))
+    ok = (count >= 3) & (err <= 1.5 + 0.01 * np.nan_to_num(last))
     per_ring: list[list[tuple[float, NDArray]]] = [[] for _ in radii]
     for i in np.flatnonzero(ok):
         dirv = np.array([np.cos(angles[i]), np.sin(angles[i])])
         for k in range(count[i]):
-            per_ring[first_ring[i] + k].append((float(angles[i]), c + peaks[i, k] * dirv))
+            per_ring[k].append((float(angles[i]), c + peaks[i, k] * dirv))
     return per_ring, int(np.sum(count[ok] - 2))

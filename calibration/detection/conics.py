@@ -166,7 +166,8 @@ def pencil_member(c1: NDArray, r1: float, c2: NDArray, r2: float, r: float) -> N
     Returns
     -------
     ndarray, shape (3, 3)
-        The conic of radius ``r``, unit Frobenius norm.
+        The conic of radius ``r``, unit Frobenius norm, its upper-left 2x2 block of
+        non-negative trace (whatever the signs of ``c1`` and ``c2``).
     """
     w = np.linalg.eigvals(np.linalg.solve(c1, c2))
     pairs = [(0, 1), (0, 2), (1, 2)]
@@ -175,7 +176,10 @@ def pencil_member(c1: NDArray, r1: float, c2: NDArray, r2: float, r: float) -> N
     g1 = rho * np.asarray(c1, dtype=np.float64)
     b = (g1 - c2) / (r2**2 - r1**2)
     member = g1 + r1**2 * b - r**2 * b
-    return member / np.linalg.norm(member)
+    # One sign for every member (an ellipse's quadratic part positive), so that signed
+    # distances to members predicted from different pairs can be compared.
+    member = member / np.linalg.norm(member)
+    return -member if np.trace(member[:2, :2]) < 0 else member
 
 
 def harmonic_conjugate(a: ArrayLike, b: ArrayLike, o: ArrayLike) -> NDArray:

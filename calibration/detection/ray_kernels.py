@@ -1,12 +1,10 @@
 """Compiled kernels of the ring detector: the coarse labelling's rays, the fine stage's samples.
 
 :func:`label_rays` samples the darkness map along all rays from a candidate centre
-(bilinear, every pixel, each ray only as far as its crossings go), takes the maxima of the
-runs above the threshold (to sub-pixel, the vertex of a parabola through three samples; a
-run touching the ray's start is the centre's own crossing of the diameter lines and is
-skipped), fits the first ones to the 1-D projectivity ``t = a r / (1 + b r)`` of the known
-radii and gives the fit's largest residual. A ray that starts where the print is hidden (a
-laser stripe through the centre) is labelled by the one ring offset that fits. Candidate
+(bilinear, every pixel, each ray only as far as its crossings go), takes the maxima of the runs
+above the threshold (to sub-pixel, the vertex of a parabola through three samples) (a run touching the ray's start is the centre's own crossing of the
+diameter lines and is skipped), fits the first ones to the 1-D projectivity
+``t = a r / (1 + b r)`` of the known radii and gives the fit's largest residual. Candidate
 centres are many (every crossing of two long lines, at several scales), so this loop was
 most of the detector's time.
 
@@ -25,16 +23,11 @@ from numpy.typing import NDArray
 
 from scanner.core.jit import HAVE_NUMBA, njit
 
-__all__ = ["FIT_TOL_FRACTION", "FIT_TOL_PX", "HAVE_NUMBA", "cubic_spline_at", "label_rays"]
-
-#: A ray's crossings fit the radii when the largest residual is at most
-#: ``FIT_TOL_PX + FIT_TOL_FRACTION * t_last`` px (the coarse crossings' own error and the lens).
-FIT_TOL_PX = 1.5
-FIT_TOL_FRACTION = 0.01
+__all__ = ["HAVE_NUMBA", "cubic_spline_at", "label_rays"]
 
 
 @njit(cache=True, nogil=True)
-def _label(d, cx, cy, cos_a, sin_a, radii, thr, tol_px, tol_frac):  # pragma: no cover - compiled
+def _label(d, cx, cy, cos_a, sin_a, radii, thr):  # pragma: no cover - compiled
     h, w = d.shape
     n_rays = cos_a.size
     k_max = radii.size
@@ -43,7 +36,6 @@ def _label(d, cx, cy, cos_a, sin_a, radii, thr, tol_px, tol_frac):  # pragma: no
     count = np.zeros(n_rays, np.int64)
     peaks = np.full((n_rays, k_max), np.nan)
     err = np.full(n_rays, np.inf)
-    ring0 = np.zeros(n_rays, np.int64)
     for i in range(n_rays):
         # bilinear samples at t = 1, 2, ... (0 outside [1, w - 2] x [1, h - 2]); a ray that
         # has left the image does not come back. Where the print is hidden (any corner < 0)
@@ -99,87 +91,52 @@ def _label(d, cx, cy, cos_a, sin_a, radii, thr, tol_px, tol_frac):  # pragma: no
                 m += 1
             else:
                 j += 1
+        if first > 0 and m > 0 and 1.0 + first > 0.5 * peaks[i, 0]:
+            # the hidden start may hide the first ring: its labels are not to be trusted
+            m = 0
+            peaks[i, :] = np.nan
         count[i] = m
         if m < 3:
             continue
-        if first == 0:
-            err[i] = _projectivity_err(peaks[i], m, radii, 0, 0.0)
+        # least squares of [r, -r t] (a, b) = t through its normal equations
+        s11 = 0.0
+        s12 = 0.0
+        s22 = 0.0
+        b1 = 0.0
+        b2 = 0.0
+        for k in range(m):
+            r = radii[k]
+            tk = peaks[i, k]
+            s11 += r * r
+            s12 -= r * r * tk
+            s22 += r * r * tk * tk
+            b1 += r * tk
+            b2 -= r * tk * tk
+        det = s11 * s22 - s12 * s12
+        if det <= 1e-12 * s11 * s22:
             continue
-        # A hidden start may hide the first rings: of the offsets (the ring of the first
-        # crossing) whose fit is good and whose hidden rings would lie under the hidden
-        # start, exactly one must remain; otherwise the ray's labels are not to be trusted.
-        n_fit = 0
-        for k0 in range(k_max - 2):
-            mk = min(m, k_max - k0)
-            if mk < 3:
+        a = (s22 * b1 - s12 * b2) / det
+        b = (s11 * b2 - s12 * b1) / det
+        if a <= 0:
+            continue
+        worst = 0.0
+        ok = True
+        for k in range(m):
+            den = 1.0 + b * radii[k]
+            if den <= 0.05:
+                ok = False
                 break
-            tol = tol_px + tol_frac * peaks[i, mk - 1]
-            e = _projectivity_err(peaks[i], mk, radii, k0, 1.0 + first + tol)
-            if e <= tol:
-                n_fit += 1
-                ring0[i] = k0
-                err[i] = e
-                count[i] = mk
-        if n_fit != 1:
-            count[i] = 0
-            ring0[i] = 0
-            err[i] = np.inf
-            peaks[i, :] = np.nan
-            continue
-        peaks[i, count[i] :] = np.nan
-    return count, peaks, err, ring0
-
-
-@njit(cache=True, nogil=True)
-def _projectivity_err(peaks, m, radii, k0, hidden_to):  # pragma: no cover - compiled
-    """Largest residual of ``t = a r / (1 + b r)`` fitted to ``peaks[:m]`` as the crossings of
-    rings ``k0 .. k0 + m - 1`` (inf for a fit without meaning, or when a ring before ``k0``
-    would lie beyond ``hidden_to`` px, where its crossing would have been seen)."""
-    # least squares of [r, -r t] (a, b) = t through its normal equations
-    s11 = 0.0
-    s12 = 0.0
-    s22 = 0.0
-    b1 = 0.0
-    b2 = 0.0
-    for k in range(m):
-        r = radii[k0 + k]
-        tk = peaks[k]
-        s11 += r * r
-        s12 -= r * r * tk
-        s22 += r * r * tk * tk
-        b1 += r * tk
-        b2 -= r * tk * tk
-    det = s11 * s22 - s12 * s12
-    if det <= 1e-12 * s11 * s22:
-        return np.inf
-    a = (s22 * b1 - s12 * b2) / det
-    b = (s11 * b2 - s12 * b1) / det
-    if a <= 0:
-        return np.inf
-    for k in range(k0):
-        den = 1.0 + b * radii[k]
-        if den <= 0.05 or a * radii[k] / den > hidden_to:
-            return np.inf
-    worst = 0.0
-    for k in range(m):
-        den = 1.0 + b * radii[k0 + k]
-        if den <= 0.05:
-            return np.inf
-        res = abs(a * radii[k0 + k] / den - peaks[k])
-        if res > worst:
-            worst = res
-    return worst
+            res = abs(a * radii[k] / den - peaks[i, k])
+            if res > worst:
+                worst = res
+        if ok:
+            err[i] = worst
+    return count, peaks, err
 
 
 def label_rays(
-    darkness: NDArray,
-    centre_px: NDArray,
-    angles: NDArray,
-    radii: NDArray,
-    thr: float,
-    tol_px: float = FIT_TOL_PX,
-    tol_frac: float = FIT_TOL_FRACTION,
-) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+    darkness: NDArray, centre_px: NDArray, angles: NDArray, radii: NDArray, thr: float
+) -> tuple[NDArray, NDArray, NDArray]:
     """Each ray's first crossings of dark lines and how well they fit the radii's projectivity.
 
     Parameters
@@ -187,9 +144,7 @@ def label_rays(
     darkness : ndarray, shape (H, W)
         The darkness map (bilinear samples every pixel along each ray). Negative where the
         print is hidden (a laser stripe, glare): a ray ends there, since a ring it hides
-        would shift the labels of every crossing after it. A ray that starts there (a
-        stripe through the centre) starts where it leaves it, and its first crossing is
-        the ring that the one good fit of the projectivity names (see ``first_ring``).
+        would shift the labels of every crossing after it.
     centre_px : ndarray, shape (2,)
         The candidate image of O, ``(u, v)``.
     angles : ndarray, shape (R,)
@@ -198,9 +153,6 @@ def label_rays(
         The spec's ring radii, increasing, mm.
     thr : float
         Darkness above which a sample may be on a printed line.
-    tol_px, tol_frac : float
-        A fit is good when its largest residual is at most ``tol_px + tol_frac * t_last``
-        (``t_last`` the last crossing's distance); used for the rays with a hidden start.
 
     Returns
     -------
@@ -209,15 +161,8 @@ def label_rays(
     peaks_px : ndarray, shape (R, K)
         Their distances from the centre (NaN beyond ``count``).
     err_px : ndarray, shape (R,)
-        Largest residual of the fit of ``t = a r / (1 + b r)`` to the radii of rings
-        ``first_ring .. first_ring + count - 1`` (``inf`` for fewer than 3 crossings or a fit
-        without meaning).
-    first_ring : ndarray, shape (R,), int
-        The ring of each ray's first crossing: 0, unless the ray starts where the print is
-        hidden and exactly one good fit says the hidden start holds rings ``0 ..
-        first_ring - 1`` (their fitted distances within it). A hidden start that leaves
-        more than one offset with a good fit, or none, gives ``count`` 0: the ray is not
-        to be trusted.
+        Largest residual of the fit of ``t = a r / (1 + b r)`` to the first ``count`` radii
+        (``inf`` for fewer than 3 crossings or a fit without meaning).
     """
     d = np.ascontiguousarray(darkness, dtype=np.float64)
     if d.ndim != 2:
@@ -231,8 +176,6 @@ def label_rays(
         np.sin(angles),
         np.ascontiguousarray(radii, dtype=np.float64),
         float(thr),
-        float(tol_px),
-        float(tol_frac),
     )
 
 

@@ -89,7 +89,6 @@ def test_views_the_benchmark_missed_are_detected_and_labelled_right(view: int, w
 @pytest.mark.parametrize(
     ("seed", "view", "what"),
     [
-        (1, 34, "a stripe through O: every ray starts hidden, some hide the first ring"),
         (1, 40, "tiles filled by a stripe learnt a threshold below the paper's noise"),
         (1, 71, "a stripe along a diameter: the evidence from the parallel it leaves"),
         (1, 105, "the Hough pair that gave the centre held the stripe's edge"),
