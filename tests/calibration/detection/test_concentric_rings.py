@@ -51,14 +51,18 @@ def test_sizes_that_fit_no_spec_give_nothing() -> None:
     assert _relabel_by_ratios(conics, radii) == {}
 
 
-def test_a_printed_diameter_shows_evidence_and_any_other_line_through_o_none() -> None:
-    # thick rings 13 px apart (they fill much of any line) and one printed diameter along x
+def _rings_and_x_diameter(thickness_px: int) -> tuple[np.ndarray, np.ndarray]:
+    """A darkness map: five rings 13 px apart around (320, 240), one diameter along x."""
     d = np.zeros((480, 640))
-    c = np.array([320.0, 240.0])
     for r in (26, 39, 52, 65, 78):
-        cv2.circle(d, (320, 240), r, 0.6, 4)
-    cv2.line(d, (242, 240), (398, 240), 0.6, 4)
-    d = cv2.GaussianBlur(d, (0, 0), 1.0)
+        cv2.circle(d, (320, 240), r, 0.6, thickness_px)
+    cv2.line(d, (242, 240), (398, 240), 0.6, thickness_px)
+    return cv2.GaussianBlur(d, (0, 0), 1.0), np.array([320.0, 240.0])
+
+
+def test_a_printed_diameter_shows_evidence_and_any_other_line_through_o_none() -> None:
+    # thick rings (they fill much of any line) and one printed diameter along x
+    d, c = _rings_and_x_diameter(4)
     ring_dark = 0.55
     x_axis = np.array([0.0, 1.0, -240.0])
     ends_x = np.array([[242.0, 240.0], [398.0, 240.0]])
@@ -104,12 +108,7 @@ def test_without_two_printed_diameters_the_scan_gives_nothing() -> None:
 
 
 def test_a_stripe_along_a_diameter_leaves_the_other_parallel_as_evidence() -> None:
-    d = np.zeros((480, 640))
-    c = np.array([320.0, 240.0])
-    for r in (26, 39, 52, 65, 78):
-        cv2.circle(d, (320, 240), r, 0.6, 2)
-    cv2.line(d, (242, 240), (398, 240), 0.6, 2)
-    d = cv2.GaussianBlur(d, (0, 0), 1.0)
+    d, c = _rings_and_x_diameter(2)
     bright = np.zeros_like(d)
     bright[245:256, :] = 1.0  # a stripe just below the diameter covers one parallel
     x_axis = np.array([0.0, 1.0, -240.0])
