@@ -18,6 +18,10 @@ by a ring spacing or a quarter turn.
 Usage::
 
     python benchmarks/bench_detection.py [--views 200] [--empty 30] [--timing 10] [--seed 0]
+        [--seeds 1]
+
+With ``--seeds N`` the seeds ``--seed`` .. ``--seed + N - 1`` are drawn and their views summed
+in one report (a table per seed first); views are then named ``seed:index``.
 """
 
 from __future__ import annotations
@@ -151,27 +155,47 @@ def rate_table(outcomes: list[Outcome]) -> str:
             errs = np.array([o.centre_err_px for o in g if o.detected])
             err = f"{np.median(errs):.3f}, {errs.max():.3f}" if len(errs) else "-"
             rows.append(
-                f"| {cond} | {b} | {len(g)} | {100 * det / len(g):.0f} % | "
-                f"{100 * lab / len(g):.0f} % | {err} |"
+                f"| {cond} | {b} | {len(g)} | {det} ({100 * det / len(g):.1f} %) | "
+                f"{lab} ({100 * lab / len(g):.1f} %) | {err} |"
             )
     return "\n".join(rows)
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--views", type=int, default=200, help="views with a target")
-    parser.add_argument("--empty", type=int, default=30, help="views without a target")
+    parser.add_argument("--views", type=int, default=200, help="views with a target, per seed")
+    parser.add_argument("--empty", type=int, default=30, help="views without a target, per seed")
     parser.add_argument("--timing", type=int, default=10, help="1280x1024 views timed")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="the first seed")
+    parser.add_argument("--seeds", type=int, default=1, help="seeds from --seed on, summed")
     args = parser.parse_args(argv)
 
-    outcomes = [run_view(v) for v in draw_views(args.views, args.seed)]
+    seeds = list(range(args.seed, args.seed + max(args.seeds, 1)))
+    outcomes: list[Outcome] = []
+    empty: list[Outcome] = []
+    names: dict[int, str] = {}  # id of an outcome -> its view's name in the seeded draw
+    per_seed = []
+    for seed in seeds:
+        drawn = [run_view(v) for v in draw_views(args.views, seed)]
+        for i, o in enumerate(drawn):
+            names[id(o)] = f"{seed}:{i}" if len(seeds) > 1 else str(i)
+        outcomes += drawn
+        empty += [run_view(v) for v in draw_views(args.empty, seed, has_target=False)]
+        good_s = [o for o in drawn if o.view.detectable]
+        per_seed.append(
+            f"| {seed} | {len(good_s)} | {sum(o.labelled_right for o in good_s)} | "
+            f"{sum(o.detected and not o.labelled_right for o in drawn)} |"
+        )
     good = [o for o in outcomes if o.view.detectable]
     not_det = [o for o in outcomes if not o.view.detectable]
     n_det = sum(o.detected for o in good)
     n_lab = sum(o.labelled_right for o in good)
     wrong = [o for o in outcomes if o.detected and not o.labelled_right]
-    print(f"### Randomised domain, seed {args.seed}: {args.views} views with a target\n")
+    which = f"seed {seeds[0]}" if len(seeds) == 1 else f"seeds {seeds[0]}-{seeds[-1]}"
+    print(f"### Randomised domain, {which}: {len(outcomes)} views with a target\n")
+    if len(seeds) > 1:
+        print("| seed | detectable | detected and labelled right | wrong labellings |")
+        print("|---:|---:|---:|---:|\n" + "\n".join(per_seed) + "\n")
     print(
         f"Detectable by the spec's rules: {len(good)}; detected {n_det} "
         f"({100 * n_det / max(len(good), 1):.1f} %), labelled right {n_lab} "
@@ -203,7 +227,7 @@ def main(argv: list[str] | None = None) -> int:
     times = []
     i = 0
     while len(times) < args.timing and i < 50 * max(args.timing, 1):
-        rng = np.random.default_rng([args.seed, 10_000 + i])
+        rng = np.random.default_rng([seeds[0], 10_000 + i])
         i += 1
         c = draw_conditions(rng)
         if (c.width, c.height) != (1280, 1024):
@@ -225,15 +249,18 @@ def main(argv: list[str] | None = None) -> int:
         print(f"| {reason} | {a} | {b} |")
     if wrong:
         print(
-            "\nWrong labellings (view index): "
-            + ", ".join(str(next(i for i, x in enumerate(outcomes) if x is o)) for o in wrong)
+            "\nWrong labellings (view index"
+            + (", seed:index" if len(seeds) > 1 else "")
+            + "): "
+            + ", ".join(names[id(o)] for o in wrong)
         )
     failed = [o for o in good if not o.labelled_right]
     if failed:
         print("\nDetectable views missed or mislabelled (view index in the seeded draw):\n")
         for o in failed:
-            idx = next(i for i, x in enumerate(outcomes) if x is o)
-            print(f"- view {idx}: {o.reason or f'worst point {o.worst_point_err_px:.1f} px'}")
+            print(
+                f"- view {names[id(o)]}: {o.reason or f'worst point {o.worst_point_err_px:.1f} px'}"
+            )
     return 0
 
 
