@@ -491,7 +491,9 @@ def _refine_axes(
         for i in range(4):
             dist = found @ line[:2] + line[2]
             sig = 1.4826 * float(np.median(np.abs(dist))) + 1e-3
-            keep = np.abs(dist) < max(3 * sig, 0.5)
+            # (first from the incoming line, a few px: a direction off by a fraction of a
+            # degree must not cut the far points of one side)
+            keep = np.abs(dist) < max(3 * sig, 2.0 if i == 0 else 0.5)
             if keep.sum() < 4:
                 if i == 0:  # too few near the incoming line: a fit to all of them
                     line = fit_line(found)
