@@ -8,16 +8,12 @@ are labelled by the 1-D projectivity ``t = a r / (1 + b r)`` of the known radii.
 
 from __future__ import annotations
 
-import warnings
-from collections.abc import Iterator
-from contextlib import contextmanager
-
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from calibration.detection.conics import intersect_lines
-from calibration.detection.ray_kernels import label_rays
+from calibration.detection.ray_kernels import label_rays, tile_thresholds
 
 # --------------------------------------------------------------------------------------------
 # Image preparation
@@ -50,11 +46,11 @@ def _lit_level(bg: NDArray) -> float:
     Dark surroundings may fill most of the frame (a percentile of the whole image would then
     be their level); the Otsu split of the background separates them from the lit card.
     """
-    top = float(np.percentile(bg, 99.9))
-    if top <= 0:
-        return 0.0
     step = max(1, int(np.sqrt(bg.size / 65536)))
     sub = bg[::step, ::step]
+    top = float(np.percentile(sub, 99.9))
+    if top <= 0:
+        return 0.0
     u8 = np.clip(sub * (255.0 / top), 0, 255).astype(np.uint8)
     t, _ = cv2.threshold(u8, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
     bright = sub[u8 > t]
@@ -92,15 +88,14 @@ def _bright_mask(img: NDArray, kernel_px: int) -> NDArray:
     # (lightly smoothed: the noise drops about threefold, a stripe keeps most of its height)
     smooth = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 1.0)
     paper = cv2.morphologyEx(cv2.morphologyEx(smooth, cv2.MORPH_CLOSE, se), cv2.MORPH_OPEN, se)
-    above = (smooth - paper).astype(np.float64)
-    paper = paper.astype(np.float64)
+    above = smooth - paper
     step = max(1, int(np.sqrt(above.size / 200_000)))
     sub_above, sub_paper = above[::step, ::step], paper[::step, ::step]
     # The noise of the lit paper, not of dark surroundings (which would pull it to zero).
     lit = sub_paper > 0.5 * _lit_level(sub_paper)
     sample = sub_above[lit] if np.count_nonzero(lit) >= 100 else sub_above.ravel()
     noise = 1.4826 * float(np.median(np.abs(sample - np.median(sample))))
-    core = above > np.maximum(paper * 0.12 + 0.02 * float(np.median(paper)), 3.5 * noise)
+    core = above > np.maximum(paper * 0.12 + 0.02 * float(np.median(sub_paper)), 3.5 * noise)
     # Over bright paper a stripe clips at the image's top before it is 12 % over the paper.
     core |= (img >= 0.99 * float(img.max())) & (above > 3.5 * noise)
     # ... and its glow (the beam's tails, the blur) reaches further: all that is still over
@@ -132,13 +127,6 @@ def _noise_threshold(d: NDArray, bg: NDArray | None = None, hidden: NDArray | No
     return max(0.02, med + 6.0 * mad)
 
 
-@contextmanager
-def _quiet() -> Iterator[None]:
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        yield
-
-
 def _threshold_map(d: NDArray, bg: NDArray, tile_px: int, hidden: NDArray | None = None) -> NDArray:
     """Per-pixel darkness threshold: median + 6 MAD of ``d`` in tiles of the lit area.
 
@@ -158,17 +146,9 @@ def _threshold_map(d: NDArray, bg: NDArray, tile_px: int, hidden: NDArray | None
     blocks = sub.reshape(ny, sub.shape[0] // ny, nx, sub.shape[1] // nx).transpose(0, 2, 1, 3)
     blocks = blocks.reshape(ny, nx, -1)
     count = np.sum(np.isfinite(blocks), axis=2)
-    with np.errstate(all="ignore"), _quiet():
-        # Printed lines are outliers on the dark side: clip them out before the statistics
-        # (dense thick rings may cover half a tile).
-        # A first guess from the low quantiles holds while lines cover up to 3/4 of a tile.
-        p5, p25 = np.nanpercentile(blocks, [5.0, 25.0], axis=2)
-        sig = np.maximum(p25 - p5, 1e-4) / 0.97
-        med = p25 + 0.674 * sig
-        blocks = np.where(blocks > (med + 4.0 * sig)[:, :, None], np.nan, blocks)
-        med = np.nanmedian(blocks, axis=2)
-        mad = 1.4826 * np.nanmedian(np.abs(blocks - med[:, :, None]), axis=2)
-    thr = med + 6.0 * mad
+    # Printed lines are outliers on the dark side: clipped out before the statistics (dense
+    # thick rings may cover half a tile).
+    thr = tile_thresholds(blocks)
     enough = count >= 0.25 * blocks.shape[2]
     thr = np.where(enough & np.isfinite(thr), np.maximum(thr, 0.02), glob).astype(np.float32)
     return cv2.resize(thr, (w, h), interpolation=cv2.INTER_LINEAR).astype(np.float64)

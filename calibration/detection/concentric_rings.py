@@ -23,7 +23,7 @@ from calibration.detection.conics import (
     pencil_member,
     sampson_distances,
 )
-from calibration.detection.ray_kernels import cubic_spline_at
+from calibration.detection.ray_kernels import cubic_spline_at, line_centres
 
 __all__ = ["ConcentricDetectorSettings"]
 
@@ -68,29 +68,7 @@ def _locate_centres(
     u = points[:, 0:1] + normals[:, 0:1] * tau[None, :]
     v = points[:, 1:2] + normals[:, 1:2] * tau[None, :]
     prof = cubic_spline_at(coef, v, u)
-    inside = np.abs(tau) <= search
-    start = np.where(inside[None, :], prof, -np.inf).argmax(axis=1)
-    c = tau[start]
-    n = len(points)
-    rows = np.arange(n)
-    for _ in range(12):
-        lo, hi = c - half_window, c + half_window
-        base = 0.5 * (_interp_rows(tau, prof, lo, rows) + _interp_rows(tau, prof, hi, rows))
-        win = (tau[None, :] >= lo[:, None]) & (tau[None, :] <= hi[:, None])
-        wgt = np.where(win, np.maximum(prof - base[:, None], 0.0), 0.0)
-        s = wgt.sum(axis=1)
-        c_new = np.where(s > 0, (wgt * tau[None, :]).sum(axis=1) / np.maximum(s, 1e-300), c)
-        c_new = np.clip(c_new, -search, search)
-        if np.max(np.abs(c_new - c)) < 1e-4:
-            c = c_new
-            break
-        c = c_new
-    peak = _interp_rows(tau, prof, c, rows)
-    base = 0.5 * (
-        _interp_rows(tau, prof, c - half_window, rows)
-        + _interp_rows(tau, prof, c + half_window, rows)
-    )
-    contrast = peak - base
+    c, contrast = line_centres(prof, tau, half_window, search)
     ok = np.isfinite(c) & (np.abs(c) < search) & (contrast > 0)
     if bright is not None:
         # A line whose window touches something brighter than the paper (laser stripe,
@@ -102,14 +80,6 @@ def _locate_centres(
         near = np.abs(tau[None, :] - c[:, None]) <= half_window + 1.0
         ok &= ~(hit & near).any(axis=1)
     return c, contrast, ok
-
-
-def _interp_rows(tau: NDArray, prof: NDArray, x: NDArray, rows: NDArray) -> NDArray:
-    step = tau[1] - tau[0]
-    f = (x - tau[0]) / step
-    i0 = np.clip(np.floor(f).astype(int), 0, len(tau) - 2)
-    w1 = np.clip(f - i0, 0.0, 1.0)
-    return prof[rows, i0] * (1 - w1) + prof[rows, i0 + 1] * w1
 
 
 def _conic_point_on_ray(conic: NDArray, c: NDArray, dirs: NDArray) -> NDArray:

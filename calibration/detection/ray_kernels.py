@@ -12,6 +12,13 @@ most of the detector's time.
 :func:`scipy.ndimage.map_coordinates` does (``order=3, prefilter=False``, ``mode="constant"``)
 to rounding, 4-5 times faster on the fine stage's profiles across the rings.
 
+:func:`line_centres` finds the centre of the dark line in each of those profiles: the
+centroid, over a window about it, of the darkness above the window ends' mean, iterated.
+
+:func:`tile_thresholds` gives the darkness threshold of each tile of the coarse stage: the
+robust level and spread of its paper with the printed lines clipped out (``np.nanpercentile``
+and ``np.nanmedian`` over a tile axis run one tile at a time in Python).
+
 Compiled with numba where it imports (:data:`HAVE_NUMBA`); without it the same code runs as
 Python (slowly, but with the same results).
 """
@@ -23,7 +30,7 @@ from numpy.typing import NDArray
 
 from scanner.core.jit import HAVE_NUMBA, njit
 
-__all__ = ["HAVE_NUMBA", "cubic_spline_at", "label_rays"]
+__all__ = ["HAVE_NUMBA", "cubic_spline_at", "label_rays", "line_centres", "tile_thresholds"]
 
 
 @njit(cache=True, nogil=True)
@@ -273,3 +280,160 @@ def cubic_spline_at(coef: NDArray, v: NDArray, u: NDArray, cval: float = 0.0) ->
         c, np.ascontiguousarray(v).reshape(-1), np.ascontiguousarray(u).reshape(-1), float(cval)
     )
     return out.reshape(v.shape)
+
+
+@njit(cache=True, nogil=True)
+def _at(prof, r, tau0, step, x):  # pragma: no cover - compiled
+    """Row ``r`` of ``prof`` linearly interpolated at ``x`` (clamped to the samples)."""
+    f = (x - tau0) / step
+    i0 = min(max(int(np.floor(f)), 0), prof.shape[1] - 2)
+    w1 = min(max(f - i0, 0.0), 1.0)
+    return prof[r, i0] * (1.0 - w1) + prof[r, i0 + 1] * w1
+
+
+@njit(cache=True, nogil=True)
+def _centres(prof, tau, half_window, search):  # pragma: no cover - compiled
+    n, m = prof.shape
+    tau0 = tau[0]
+    step = tau[1] - tau[0]
+    c = np.empty(n)
+    for r in range(n):
+        best = -np.inf
+        j_best = 0
+        for j in range(m):
+            if abs(tau[j]) <= search and prof[r, j] > best:
+                best = prof[r, j]
+                j_best = j
+        c[r] = tau[j_best]
+    c_new = np.empty(n)
+    for _ in range(12):
+        change = 0.0
+        for r in range(n):
+            lo = c[r] - half_window
+            hi = c[r] + half_window
+            base = 0.5 * (_at(prof, r, tau0, step, lo) + _at(prof, r, tau0, step, hi))
+            s = 0.0
+            st = 0.0
+            for j in range(m):
+                if tau[j] >= lo and tau[j] <= hi:
+                    wgt = prof[r, j] - base
+                    if wgt > 0.0:
+                        s += wgt
+                        st += wgt * tau[j]
+            x = st / s if s > 0.0 else c[r]
+            x = min(max(x, -search), search)
+            change = max(change, abs(x - c[r]))
+            c_new[r] = x
+        c[:] = c_new
+        if change < 1e-4:
+            break
+    contrast = np.empty(n)
+    for r in range(n):
+        contrast[r] = _at(prof, r, tau0, step, c[r]) - 0.5 * (
+            _at(prof, r, tau0, step, c[r] - half_window)
+            + _at(prof, r, tau0, step, c[r] + half_window)
+        )
+    return c, contrast
+
+
+def line_centres(
+    prof: NDArray, tau: NDArray, half_window: float, search: float
+) -> tuple[NDArray, NDArray]:
+    """Sub-pixel centre of the dark line in each profile, and its contrast.
+
+    Each centre starts at the profile's maximum within ``search`` of 0 and is moved to the
+    centroid of the profile above its baseline (the mean of the profile at the window's two
+    ends) over ``c - half_window ... c + half_window``, until no centre moves by 1e-4 or 12
+    times; it stays within ``search``.
+
+    Parameters
+    ----------
+    prof : ndarray, shape (N, M)
+        Darkness along each of N profiles, sampled at ``tau``.
+    tau : ndarray, shape (M,)
+        Evenly spaced, increasing sample positions, px.
+    half_window, search : float
+        The centroid's half window and the farthest centre from 0, px.
+
+    Returns
+    -------
+    centre : ndarray, shape (N,)
+        Position along the profile, px.
+    contrast : ndarray, shape (N,)
+        The profile at the centre above the mean at ``centre -+ half_window``.
+    """
+    prof = np.ascontiguousarray(prof, dtype=np.float64)
+    tau = np.ascontiguousarray(tau, dtype=np.float64)
+    if prof.ndim != 2 or tau.shape != (prof.shape[1],) or len(tau) < 2:
+        raise ValueError(
+            f"prof, tau: expected shapes (N, M) and (M,), got {prof.shape}, {tau.shape}"
+        )
+    return _centres(prof, tau, float(half_window), float(search))
+
+
+@njit(cache=True, nogil=True)
+def _quantile_sorted(x, n, q):  # pragma: no cover - compiled
+    """``np.quantile`` (linear) of the sorted ``x[:n]``."""
+    f = q * (n - 1)
+    i = int(np.floor(f))
+    if i >= n - 1:
+        return x[n - 1]
+    return x[i] + (f - i) * (x[i + 1] - x[i])
+
+
+@njit(cache=True, nogil=True)
+def _tiles(blocks, clip_sigmas, spread):  # pragma: no cover - compiled
+    ny, nx, m = blocks.shape
+    out = np.full((ny, nx), np.nan)
+    vals = np.empty(m)
+    dev = np.empty(m)
+    for a in range(ny):
+        for b in range(nx):
+            n = 0
+            for k in range(m):
+                x = blocks[a, b, k]
+                if np.isfinite(x):
+                    vals[n] = x
+                    n += 1
+            if n == 0:
+                continue
+            srt = np.sort(vals[:n])
+            p5 = _quantile_sorted(srt, n, 0.05)
+            p25 = _quantile_sorted(srt, n, 0.25)
+            sig = max(p25 - p5, 1e-4) / 0.97
+            cut = p25 + 0.674 * sig + clip_sigmas * sig
+            kept = n
+            while kept > 0 and srt[kept - 1] > cut:
+                kept -= 1
+            if kept == 0:
+                continue
+            med = _quantile_sorted(srt, kept, 0.5)
+            for k in range(kept):
+                dev[k] = abs(srt[k] - med)
+            mad = 1.4826 * _quantile_sorted(np.sort(dev[:kept]), kept, 0.5)
+            out[a, b] = med + spread * mad
+    return out
+
+
+def tile_thresholds(blocks: NDArray, clip_sigmas: float = 4.0, spread: float = 6.0) -> NDArray:
+    """Per tile, the median + ``spread`` MAD of its finite values, the dark outliers clipped.
+
+    A first level and spread come from the low quantiles (``sigma = (p25 - p5) / 0.97``,
+    ``level = p25 + 0.674 sigma``: they hold while printed lines, the outliers on the dark
+    side, cover up to 3/4 of the tile); values over ``level + clip_sigmas * sigma`` are
+    dropped before the median and the MAD (scaled by 1.4826) of the rest.
+
+    Parameters
+    ----------
+    blocks : ndarray, shape (NY, NX, M)
+        M samples of each tile; NaN where a sample is not to be used.
+
+    Returns
+    -------
+    ndarray, shape (NY, NX)
+        NaN for a tile without a finite sample.
+    """
+    b = np.ascontiguousarray(blocks, dtype=np.float64)
+    if b.ndim != 3:
+        raise ValueError(f"blocks: expected shape (NY, NX, M), got {b.shape}")
+    return _tiles(b, float(clip_sigmas), float(spread))

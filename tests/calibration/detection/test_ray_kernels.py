@@ -1,5 +1,6 @@
 """The compiled ray labelling against a plain per-ray reference, and on a drawn target; the
-compiled spline sampler against scipy's."""
+compiled spline sampler against scipy's; the line centres and the tile thresholds against
+drawn truth and numpy's statistics."""
 
 from __future__ import annotations
 
@@ -8,7 +9,12 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from calibration.detection.ray_kernels import cubic_spline_at, label_rays
+from calibration.detection.ray_kernels import (
+    cubic_spline_at,
+    label_rays,
+    line_centres,
+    tile_thresholds,
+)
 
 
 def _reference(d: np.ndarray, c: np.ndarray, angle: float, radii: np.ndarray, thr: float):
@@ -137,3 +143,46 @@ def test_cubic_spline_at_refuses_mismatched_points():
         cubic_spline_at(np.zeros((4, 4)), np.zeros(3), np.zeros(4))
     with pytest.raises(ValueError, match="coef"):
         cubic_spline_at(np.zeros(4), np.zeros(3), np.zeros(3))
+
+
+def test_line_centres_find_a_drawn_line_and_its_depth():
+    rng = np.random.default_rng(3)
+    tau = np.arange(-8.0, 8.0 + 0.125, 0.25)
+    true_c = rng.uniform(-3.0, 3.0, 200)
+    width = rng.uniform(0.8, 2.0, 200)
+    depth = rng.uniform(0.2, 0.9, 200)
+    paper = rng.uniform(0.0, 0.05, 200)
+    prof = paper[:, None] + depth[:, None] * np.exp(
+        -0.5 * ((tau[None, :] - true_c[:, None]) / width[:, None]) ** 2
+    )
+    centre, contrast = line_centres(prof, tau, half_window=3.0 * 2.0, search=4.0)
+    assert np.abs(centre - true_c).max() < 0.01
+    # the window ends lie 3 widths out or beyond: the contrast is nearly the whole depth
+    assert np.all(contrast > 0.85 * depth) and np.all(contrast <= depth + 1e-12)
+
+
+def test_line_centres_stay_within_the_search():
+    tau = np.arange(-6.0, 6.0 + 0.125, 0.25)
+    prof = np.exp(-0.5 * ((tau - 5.0) / 0.8) ** 2)[None, :]  # a line beyond the search
+    centre, _ = line_centres(prof, tau, half_window=2.0, search=2.0)
+    assert abs(centre[0]) <= 2.0
+    with pytest.raises(ValueError, match="expected shapes"):
+        line_centres(prof, tau[:-1], 2.0, 2.0)
+
+
+def test_tile_thresholds_give_numpys_statistics_with_nans_and_empty_tiles():
+    rng = np.random.default_rng(11)
+    blocks = rng.normal(0.05, 0.01, (3, 4, 301))
+    blocks[..., :90] += rng.uniform(0.1, 0.5, (3, 4, 90))  # printed lines: dark outliers
+    blocks[rng.random(blocks.shape) < 0.2] = np.nan
+    blocks[2, 3] = np.nan  # a tile with no lit pixel
+    p5, p25 = np.nanpercentile(blocks[:2], [5.0, 25.0], axis=2)
+    sig = np.maximum(p25 - p5, 1e-4) / 0.97
+    kept = np.where(blocks[:2] > (p25 + 0.674 * sig + 4.0 * sig)[:, :, None], np.nan, blocks[:2])
+    med = np.nanmedian(kept, axis=2)
+    mad = 1.4826 * np.nanmedian(np.abs(kept - med[:, :, None]), axis=2)
+    got = tile_thresholds(blocks)
+    np.testing.assert_allclose(got[:2], med + 6.0 * mad, rtol=1e-12)
+    assert np.isnan(got[2, 3])
+    # against the truth: the paper's noise level, the lines clipped out
+    assert np.all(np.abs(got[:2] - (0.05 + 6 * 0.01)) < 0.015)
