@@ -73,11 +73,16 @@ def _locate_centres(
     if bright is not None:
         # A line whose window touches something brighter than the paper (laser stripe,
         # glare) is biased; beyond the window (where the search went) it does no harm.
+        # (only the samples within the window and a pixel of it are looked up)
         h, w = bright.shape
-        iu, iv = np.rint(u).astype(np.intp), np.rint(v).astype(np.intp)
+        reach = half_window + 1.0
+        j0 = np.clip(np.ceil((c - reach - tau[0]) / step).astype(np.intp), 0, len(tau) - 1)
+        j = np.minimum(j0[:, None] + np.arange(int(2 * reach / step) + 2), len(tau) - 1)
+        near = np.abs(tau[j] - c[:, None]) <= reach
+        rows = np.arange(len(points))[:, None]
+        iu, iv = np.rint(u[rows, j]).astype(np.intp), np.rint(v[rows, j]).astype(np.intp)
         inside = (iu >= 0) & (iu < w) & (iv >= 0) & (iv < h)
         hit = inside & bright[np.clip(iv, 0, h - 1), np.clip(iu, 0, w - 1)].astype(bool)
-        near = np.abs(tau[None, :] - c[:, None]) <= half_window + 1.0
         ok &= ~(hit & near).any(axis=1)
     return c, contrast, ok
 
