@@ -35,6 +35,12 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
+from calibration.detection.concentric_axes import (
+    _diameter_lines,
+    _line_evidence,
+    _lines_angle_deg,
+    _refine_axes,
+)
 from calibration.detection.concentric_labels import (
     _axis_dir,
     _combine_centre,
@@ -57,17 +63,13 @@ from calibration.detection.concentric_rings import (
     _conic_axes_ratio,
     _conic_normals,
     _consistent_rings,
-    _diameter_lines,
     _ellipse_ok,
-    _line_evidence,
-    _lines_angle_deg,
     _min_spacing_px,
     _pencil_centre,
     _pencil_offsets,
     _pencil_predictions,
     _perimeter_px,
     _prune_by_pencil,
-    _refine_axes,
     _refine_ring,
     _relabel_by_ratios,
     _unit_line,
@@ -210,9 +212,9 @@ def _detect_with_kernel(
     radii = np.asarray(target.ring_radii_mm, dtype=np.float64)
     # Coarse stage on a lightly smoothed image: noise and grain drop about threefold, a
     # printed line keeps most of its darkness.
-    d, bg = _darkness(cv2.GaussianBlur(img, (0, 0), 1.0), kernel)
-    # Darkness over its local noise threshold: > 1 where a printed line may be.
     hidden = _bright_mask(img, kernel) > 0
+    d, bg = _darkness(cv2.GaussianBlur(img, (0, 0), 1.0), kernel, hidden)
+    # Darkness over its local noise threshold: > 1 where a printed line may be.
     z = d / _threshold_map(d, bg, 4 * kernel, hidden)
     thr = 1.0
     mask = (z > thr).astype(np.uint8) * 255
@@ -272,15 +274,16 @@ def _detect_with_kernel(
     half_window = max(1.5, min(1.6 * line_px + 2.0, 0.45 * spacing_px), 0.5 * line_px + 1.0)
     # Finer darkness map now that the scale is known (kernel several line widths, < spacing).
     kernel2 = int(np.clip(4 * half_window + 3, 9, max(9, 0.8 * spacing_px)))
-    if kernel2 != kernel:
-        d, bg = _darkness(img, kernel2)
-    coef = ndimage.spline_filter(d, order=3)
     bright = _bright_mask(img, kernel2)
+    if kernel2 != kernel:
+        d, bg = _darkness(img, kernel2, bright > 0)
+    coef = ndimage.spline_filter(d, order=3)
 
     # -- sub-pixel rings
     axis_lines = [l1 / np.linalg.norm(l1[:2]), l2 / np.linalg.norm(l2[:2])]
     rings: dict[int, tuple[NDArray, NDArray, NDArray]] = {}
     scanned_at: NDArray | None = None
+    hidden: int | None = None  # a diameter under a laser stripe: see _diameter_lines
     for _ in range(2):
         rings = {}
         n_rays = int(np.clip(_perimeter_px(conics[max(conics)], c) / 3.0, 180, 1440))
@@ -335,16 +338,17 @@ def _detect_with_kernel(
         if scanned_at is None or np.linalg.norm(c_new - scanned_at) > 0.5:
             scanned = _diameter_lines(z_rays, c_new, conics, line_px, spacing_px)
             if scanned is not None:
-                axis_lines, scanned_at = scanned, c_new
+                (axis_lines, hidden), scanned_at = scanned, c_new
         c = c_new
         axis_res = _refine_axes(
-            coef, axis_lines, c, conics, radii, half_window, line_px, (w, h), bright
+            coef, axis_lines, c, conics, radii, half_window, line_px, (w, h), bright, hidden
         )
         if axis_res is None:
             return TargetObservation.failed(
                 "diameter lines not measurable between the rings", size, KIND
             )
         axis_lines, axis_pts = axis_res
+        hidden = next((i for i, pts in enumerate(axis_pts) if len(pts) == 0), None)
         if _lines_angle_deg(*axis_lines) < 12.0:
             return TargetObservation.failed(
                 "diameter lines not measurable: both converged on one line", size, KIND
@@ -386,7 +390,10 @@ def _detect_with_kernel(
     line_dark = float(np.median(_sample(d, ring_pts[:, 0], ring_pts[:, 1])))
     paper = float(np.median(_sample(bg, ring_pts[:, 0], ring_pts[:, 1])))
     # Both diameters must be printed lines, not any two lines through the centre.
-    for ln, ends_ln in zip(axis_lines, ends, strict=True):
+    # (A diameter hidden under a stripe was found hidden, not dark: its conjugate is printed.)
+    for index, (ln, ends_ln) in enumerate(zip(axis_lines, ends, strict=True)):
+        if index == hidden:
+            continue
         ev = _line_evidence(d, ln, center, ends_ln, 2.0 * half_window + 2.0, line_dark, bright)
         if ev < 0.3 * line_dark:
             return TargetObservation.failed(

@@ -19,12 +19,16 @@ from calibration.detection.ray_kernels import label_rays, tile_thresholds
 # Image preparation
 
 
-def _darkness(img: NDArray, kernel_px: int) -> tuple[NDArray, NDArray]:
+def _darkness(
+    img: NDArray, kernel_px: int, hidden: NDArray | None = None
+) -> tuple[NDArray, NDArray]:
     """Darkness ``1 - I / background`` (>= 0) and the background, closing with ``kernel_px``.
 
     Where the background is far below the lit paper (unlit or dark surroundings) no printed
     line can be seen and the darkness is 0; the paper's level comes from this image
-    (:func:`_lit_level`), not from a constant.
+    (:func:`_lit_level`), not from a constant: from the pixels not ``hidden`` (a laser
+    stripe or glare, far brighter than the paper, would otherwise be taken for it and the
+    paper for unlit surroundings).
     """
     k = int(kernel_px) | 1
     se = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
@@ -36,18 +40,23 @@ def _darkness(img: NDArray, kernel_px: int) -> tuple[NDArray, NDArray]:
         bg = cv2.morphologyEx(img32, cv2.MORPH_CLOSE, se)
     bg = np.maximum(bg, img32)
     d = 1.0 - img32 / np.maximum(bg, 1e-6)
-    d[bg < 0.3 * _lit_level(bg)] = 0.0
+    d[bg < 0.3 * _lit_level(bg, hidden)] = 0.0
     return np.clip(d, 0.0, 1.0).astype(np.float64), bg.astype(np.float64)
 
 
-def _lit_level(bg: NDArray) -> float:
+def _lit_level(bg: NDArray, hidden: NDArray | None = None) -> float:
     """Level of the lit paper: the median background of the bright class of an Otsu split.
 
     Dark surroundings may fill most of the frame (a percentile of the whole image would then
     be their level); the Otsu split of the background separates them from the lit card.
+    ``hidden`` pixels (a laser stripe, glare) are left out: the split would put them alone in
+    the bright class.
     """
     step = max(1, int(np.sqrt(bg.size / 65536)))
     sub = bg[::step, ::step]
+    if hidden is not None:
+        seen = sub[~hidden[::step, ::step]]
+        sub = seen.reshape(-1, 1) if seen.size >= 100 else sub
     top = float(np.percentile(sub, 99.9))
     if top <= 0:
         return 0.0
@@ -61,7 +70,7 @@ def _live_mask(d: NDArray, bg: NDArray, hidden: NDArray | None = None) -> NDArra
     """Pixels where a printed line could be seen: lit, not clipped at the white level, not
     ``hidden`` (a laser stripe or glare, whose darkness is 0 without noise: a tile it fills
     would otherwise learn a threshold far below the paper's noise)."""
-    live = bg >= 0.3 * _lit_level(bg)
+    live = bg >= 0.3 * _lit_level(bg, hidden)
     if hidden is not None:
         live &= ~hidden
     top = float(bg.max())

@@ -1,10 +1,10 @@
-"""The coarse stage's darkness threshold: learnt from the paper's own noise."""
+"""The coarse stage's darkness and its threshold: learnt from the paper's own noise."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from calibration.detection.concentric_rays import _threshold_map
+from calibration.detection.concentric_rays import _darkness, _lit_level, _threshold_map
 
 
 def test_a_laser_stripe_filling_tiles_does_not_lower_their_threshold() -> None:
@@ -26,3 +26,23 @@ def test_a_laser_stripe_filling_tiles_does_not_lower_their_threshold() -> None:
     assert np.mean(d[262:300] > paper[262:300]) < 0.01
     blind = _threshold_map(d, bg, 48)
     assert blind[205, 240] <= 0.021  # what it was without the hidden mask
+
+
+def test_the_lit_level_is_the_papers_not_a_laser_stripes() -> None:
+    # A stripe far brighter than the paper, in a frame that dark surroundings half fill: the
+    # Otsu split put the stripe alone in the bright class, and the whole card below 30 % of
+    # its level was taken for unlit surroundings (its printed lines then had no darkness).
+    rng = np.random.default_rng(4)
+    bg = np.full((300, 400), 0.2) + rng.normal(0, 0.003, (300, 400))
+    bg[:, :150] = 0.02  # dark surroundings
+    hidden = np.zeros(bg.shape, bool)
+    hidden[:, 250:290] = True
+    bg[hidden] = 1.0
+    assert _lit_level(bg) > 0.9  # the stripe's
+    assert abs(_lit_level(bg, hidden) - 0.2) < 0.01
+    img = bg.copy()
+    img[100:103, 160:240] *= 0.6  # a printed line on the card
+    d, _ = _darkness(img, 9)
+    assert d[101, 200] == 0.0  # taken for surroundings
+    d, _ = _darkness(img, 9, hidden)
+    assert abs(d[101, 200] - 0.4) < 0.03

@@ -1,0 +1,383 @@
+"""Concentric-circles detector, the diameters: found, measured between the rings, checked.
+
+Step 5 of :mod:`calibration.detection.concentric`: the two diameter lines through the pencil's
+centre from an angular scan of the darkness (:func:`_diameter_lines`), each located to
+sub-pixel between the rings by the rings' centroid profiles (:func:`_refine_axes`), and shown
+to be printed (:func:`_line_evidence`). A diameter a laser stripe hides (the paper's set-up
+puts the stripe along A-O-B) is the other one's conjugate (:func:`conjugate_diameter`).
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+
+from calibration.detection.concentric_rings import (
+    _conic_point_on_ray,
+    _locate_centres,
+    _perimeter_px,
+    _unit_line,
+)
+from calibration.detection.conics import fit_line
+
+__all__ = ["conjugate_diameter"]
+
+
+def _diameter_lines(
+    z: NDArray, c: NDArray, conics: dict[int, NDArray], line_px: float, spacing_px: float
+) -> tuple[list[NDArray], int | None] | None:
+    """The two diameter lines through the pencil's centre ``c``, from an angular scan.
+
+    For every direction through ``c`` (steps of about half a line width at the outer ring,
+    at most 1440 over 180 deg; samples every other pixel along it)
+    the mean darkness ``z`` (in units of its noise threshold; negative where the print is
+    hidden, which is left out) on the paper between the rings, inside the largest ring; the
+    diameters are the two darkest directions at least 12 deg apart, each dark (over the
+    threshold) on at least 30 % of its samples (two
+    perpendicular diameters stay over 45 deg apart in the image up to a 65 deg tilt). The
+    Hough lines that gave the candidate centre may be a laser stripe's edge or clutter
+    through it; these are the print's. None when fewer than two directions are dark on
+    30 % of their samples and on 3 times the median direction's share. At least 360
+    directions are scanned; samples run to the outer ring or the image's farthest corner.
+
+    A laser stripe along a diameter hides it whole (the paper's set-up puts the stripe on
+    A-O-B): where only one direction is dark, the other diameter is its conjugate
+    (:func:`conjugate_diameter`), taken when the print is hidden on most of its samples.
+
+    Returns
+    -------
+    (list of two ndarray, shape (3,), int or None) or None
+        Homogeneous lines ``(a, b, c)`` with ``a^2 + b^2 = 1``, and the index of a line
+        hidden under a stripe (``None``: both seen).
+    """
+    h, w = z.shape
+    outer = conics[max(conics)]
+    r_out = _perimeter_px(outer, c) / (2 * np.pi)
+    n_ang = int(np.clip(np.ceil(np.pi * r_out / max(0.5 * line_px, 0.5)), 360, 1440))
+    theta = np.arange(n_ang) * (np.pi / n_ang)
+    dirs = np.column_stack([np.cos(theta), np.sin(theta)])
+    both = np.vstack([dirs, -dirs])
+    ts = np.array([_conic_point_on_ray(conics[k], c, both) for k in sorted(conics)])
+    t_out = ts[-1]
+    if not np.isfinite(t_out).any():
+        return None
+    step = 2.0  # (a line is long: every other px)
+    corner = float(
+        np.max(np.hypot(np.array([0.0, w - 1.0]) - c[0], np.array([0.0, h - 1.0])[:, None] - c[1]))
+    )
+    t = np.arange(1.0, min(float(np.nanmax(t_out)), corner) + 1.0, step)
+    clear = max(1.0, min(0.5 * line_px + 2.0, 0.35 * spacing_px))
+    with np.errstate(invalid="ignore"):
+        valid = (t[None, :] < t_out[:, None]) & (t[None, :] > max(2.0 * line_px + 3.0, clear))
+    # samples within ``clear`` of a ring's crossing are left out (each ring's few, by index)
+    rows = np.arange(len(both))[:, None]
+    reach = np.arange(-int(clear / step) - 1, int(clear / step) + 2)
+    for tk in ts:
+        near = np.floor((np.nan_to_num(tk, nan=-1e6) - t[0]) / step).astype(np.intp)[:, None]
+        idx = near + reach[None, :]
+        hit = (idx >= 0) & (idx < len(t))
+        hit &= np.abs(t[np.clip(idx, 0, len(t) - 1)] - tk[:, None]) <= clear
+        valid[np.broadcast_to(rows, idx.shape)[hit], idx[hit]] = False
+    u = np.rint(c[0] + t[None, :] * both[:, 0:1]).astype(np.intp)
+    v = np.rint(c[1] + t[None, :] * both[:, 1:2]).astype(np.intp)
+    valid &= (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    zs = z[np.clip(v, 0, h - 1), np.clip(u, 0, w - 1)]
+    covered = valid & (zs < 0)
+    valid &= zs >= 0
+
+    def per_line(x: NDArray) -> NDArray:
+        total = np.where(valid, x, 0).sum(axis=1)
+        return total[:n_ang] + total[n_ang:]
+
+    n_valid = per_line(np.ones_like(zs))
+    usable = n_valid >= 10
+    dark = np.where(usable, per_line(zs > 1.0) / np.maximum(n_valid, 1), 0.0)
+    # where on the line: the mean darkness (clipped), which peaks on the line's middle
+    # where the share of dark samples is flat
+    strength = np.where(usable, per_line(np.clip(zs, 0.0, 4.0)) / np.maximum(n_valid, 1), 0.0)
+    strength = (np.roll(strength, 1) + 2 * strength + np.roll(strength, -1)) / 4
+    lines = []
+    taken = np.zeros(n_ang, bool)
+    for found in range(2):
+        i = int(np.argmax(np.where(taken, -1.0, strength)))
+        if dark[i] < 0.3 or dark[i] < 3 * float(np.median(dark)):
+            if found == 1:
+                other = conjugate_diameter(lines[0], c, conics)
+                angle = float(np.arctan2(other[0], -other[1])) % np.pi
+                j = int(np.rint(angle / (np.pi / n_ang))) % n_ang
+                # (hidden: the samples the stripe covers, of all within the rings)
+                n_covered = np.count_nonzero(covered[[j, j + n_ang]])
+                n_seen = np.count_nonzero(valid[[j, j + n_ang]])
+                if n_covered >= 10 and n_covered >= 1.5 * n_seen:
+                    return [lines[0], other], 1
+            return None
+        a, b0, cc = strength[i - 1], strength[i], strength[(i + 1) % n_ang]
+        curv = a - 2 * b0 + cc
+        off = 0.5 * (a - cc) / curv if curv < 0 else 0.0
+        ang = (i + off) * (np.pi / n_ang)
+        normal = np.array([-np.sin(ang), np.cos(ang)])
+        lines.append(np.array([normal[0], normal[1], -float(normal @ c)]))
+        near = np.abs((theta - ang + np.pi / 2) % np.pi - np.pi / 2) < np.radians(12)
+        taken |= near
+    return lines, None
+
+
+def conjugate_diameter(line: NDArray, c: NDArray, conics: dict[int, NDArray]) -> NDArray:
+    """The image of the diameter perpendicular to the one imaged as ``line``.
+
+    Exact for images of concentric circles, lens distortion aside: the polar of the image
+    of O with respect to a ring's conic is the vanishing line; ``line`` meets it at its
+    diameter's vanishing point, whose polar is the perpendicular diameter (through O). Each
+    ring gives it; their mean direction is taken, through ``c``.
+
+    Parameters
+    ----------
+    line : ndarray, shape (3,)
+        A diameter's image, homogeneous, through (or near) ``c``.
+    c : ndarray, shape (2,)
+        The image of O, px.
+    conics : dict of int to ndarray, shape (3, 3)
+        Ring conics.
+
+    Returns
+    -------
+    ndarray, shape (3,)
+        Homogeneous line through ``c`` with ``a^2 + b^2 = 1``.
+    """
+    ch = np.array([c[0], c[1], 1.0])
+    normals = []
+    for conic in conics.values():
+        vanishing = conic @ ch
+        other = conic @ np.cross(line, vanishing)
+        n = other[:2] / max(float(np.hypot(other[0], other[1])), 1e-300)
+        if normals and float(n @ normals[0]) < 0:
+            n = -n
+        normals.append(n)
+    n = np.mean(normals, axis=0)
+    n /= np.linalg.norm(n)
+    return np.array([n[0], n[1], -float(n @ c)])
+
+
+def _lines_angle_deg(line_a: NDArray, line_b: NDArray) -> float:
+    """The angle between two homogeneous image lines, deg (0 to 90)."""
+    na, nb = _unit_line(line_a)[:2], _unit_line(line_b)[:2]
+    return float(np.degrees(np.arccos(np.clip(abs(float(na @ nb)), 0.0, 1.0))))
+
+
+def _normal_clear_of(conic: NDArray, points: NDArray, normal: NDArray, reach: float) -> NDArray:
+    """Whether the segments ``p + tau normal``, ``|tau| <= reach``, through each of the
+    ``(M, 2)`` points stay off the conic (``(M,)`` bool)."""
+    x = np.column_stack([points, np.ones(len(points))])
+    nh = np.array([normal[0], normal[1], 0.0])
+    a = float(nh @ conic @ nh)
+    b = x @ (conic @ nh)
+    cc = np.einsum("ij,jk,ik->i", x, conic, x)
+    disc = b * b - a * cc
+    clear = disc < 0
+    # roots of a tau^2 + 2 b tau + cc = 0 in the stable form (q / a and cc / q)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        q = -(b + np.copysign(np.sqrt(np.maximum(disc, 0.0)), b))
+        taus = [q / a, cc / q]
+    near = np.zeros(len(points), bool)
+    for tau in taus:
+        near |= np.abs(tau) <= reach
+    return clear | ~near
+
+
+def _refine_axes(
+    coef: NDArray,
+    axis_lines: list[NDArray],
+    c: NDArray,
+    conics: dict[int, NDArray],
+    radii: NDArray,
+    half_window: float,
+    line_px: float,
+    size: tuple[int, int],
+    bright: NDArray | None = None,
+    hidden: int | None = None,
+) -> tuple[list[NDArray], list[NDArray]] | None:
+    """Sub-pixel points on both diameter lines, between the rings; refitted lines.
+
+    A profile across a diameter runs along the rings beside it, so it only has to stay clear
+    of their printed lines and blur: between closely spaced rings the points keep half a
+    line width and 1.5 px from them rather than a whole profile window. The line
+    ``hidden`` under a laser stripe, or one that gives too few points where the stripe
+    covers most of it, has no points: it is the refitted other one's conjugate
+    (:func:`conjugate_diameter`).
+    """
+    w, h = size
+    keys = sorted(conics)
+    new_lines, new_pts = [], []
+    for index, ln in enumerate(axis_lines):
+        if index == hidden:
+            new_lines.append(ln)
+            new_pts.append(np.zeros((0, 2)))
+            continue
+        ln = _unit_line(ln)
+        # Re-anchor the line through the current centre (keeps its direction).
+        ln = np.array([ln[0], ln[1], -(ln[0] * c[0] + ln[1] * c[1])])
+        dirv = np.array([-ln[1], ln[0]])
+        samples = []
+        for sgn in (1.0, -1.0):
+            ts = [0.0]
+            for k in keys:
+                t = _conic_point_on_ray(conics[k], c, (sgn * dirv)[None, :])[0]
+                ts.append(float(t) if np.isfinite(t) else np.nan)
+            ts_a = np.asarray(ts)
+            for a, b in itertools.pairwise(ts_a):
+                if not (np.isfinite(a) and np.isfinite(b)):
+                    continue
+                gap = b - a
+                clear = max(0.5 * line_px + 1.5, min(half_window + 1.5, 0.5 * gap - 1.0))
+                if gap < 2 * clear:
+                    continue
+                n = max(1, int((gap - 2 * clear) / 2))
+                for tt in np.linspace(a + clear, b - clear, n):
+                    samples.append(c + sgn * tt * dirv)
+        if len(samples) < 4:
+            return None
+        if (
+            bright is not None
+            and hidden is None
+            and _under_stripe(bright, np.asarray(samples), ln[:2], half_window + 1.0)
+        ):
+            # the line is measured on the paper the stripe leaves, if at all
+            stripe_over = index
+        else:
+            stripe_over = None
+        pts = np.asarray(samples)
+        inside = (
+            (pts[:, 0] > half_window + 3)
+            & (pts[:, 0] < w - half_window - 4)
+            & (pts[:, 1] > half_window + 3)
+            & (pts[:, 1] < h - half_window - 4)
+        )
+        pts = pts[inside]
+        search = max(1.0, 2 * half_window)
+        # The centroid's window across the diameter must not reach a ring: where a ring runs
+        # nearly along the diameter (a steep tilt puts its flank there) it would, though the
+        # sample is well clear of the crossing along the line, and pull the centre towards
+        # it. (A ring further out but within the search is the line fit's outlier to drop.)
+        reach = half_window + 0.5 * line_px + 1.5
+        for conic in conics.values():
+            pts = pts[_normal_clear_of(conic, pts, ln[:2], reach)]
+        if len(pts) < 4:
+            if stripe_over is None:
+                return None
+            hidden = index
+            new_lines.append(ln)
+            new_pts.append(np.zeros((0, 2)))
+            continue
+        normals = np.tile(ln[:2], (len(pts), 1))
+        off, contrast, good = _locate_centres(
+            coef, pts, normals, half_window, search, 0.125, bright
+        )
+        med = np.median(contrast[good]) if good.any() else 0.0
+        good &= contrast > 0.5 * med
+        found = (pts + off[:, None] * normals)[good]
+        if len(found) < 4:
+            if stripe_over is None:
+                return None
+            hidden = index
+            new_lines.append(ln)
+            new_pts.append(np.zeros((0, 2)))
+            continue
+        # Trimmed from the line through the centre it came as (right to a line's width), not
+        # from a first fit to all points: centres caught by a ring's flank along a stretch of
+        # the diameter would turn that fit, and the trimming would keep them.
+        line, kept = ln, found
+        for i in range(4):
+            dist = found @ line[:2] + line[2]
+            sig = 1.4826 * float(np.median(np.abs(dist))) + 1e-3
+            # (first from the incoming line, a few px: a direction off by a fraction of a
+            # degree must not cut the far points of one side)
+            keep = np.abs(dist) < max(3 * sig, 2.0 if i == 0 else 0.5)
+            if keep.sum() < 4:
+                if i == 0:  # too few near the incoming line: a fit to all of them
+                    line = fit_line(found)
+                break
+            same = len(kept) == keep.sum() and np.array_equal(kept, found[keep])
+            kept = found[keep]
+            line = fit_line(kept)
+            if same:
+                break
+        new_lines.append(line)
+        new_pts.append(kept)
+    if hidden is not None:
+        if len(new_pts[1 - hidden]) == 0:
+            return None
+        new_lines[hidden] = conjugate_diameter(new_lines[1 - hidden], c, conics)
+    return new_lines, new_pts
+
+
+def _under_stripe(bright: NDArray, points: NDArray, normal: NDArray, reach: float) -> bool:
+    """Whether a laser stripe or glare (``bright``) lies within ``reach`` px across the line
+    (unit ``normal``) of most of its ``(M, 2)`` points: their centroid windows would touch it."""
+    h, w = bright.shape
+    blocked = np.zeros(len(points), bool)
+    for tau in np.linspace(-reach, reach, 5):
+        q = points + tau * normal
+        iu = np.clip(np.rint(q[:, 0]).astype(np.intp), 0, w - 1)
+        iv = np.clip(np.rint(q[:, 1]).astype(np.intp), 0, h - 1)
+        blocked |= bright[iv, iu] > 0
+    return bool(np.mean(blocked) >= 0.6)
+
+
+def _line_evidence(
+    d: NDArray,
+    line: NDArray,
+    c: NDArray,
+    ends_px: NDArray,
+    offset_px: float,
+    ring_dark: float,
+    bright: NDArray | None = None,
+) -> float:
+    """Median darkness on ``line`` minus that on its two parallels ``offset_px`` away.
+
+    Sampled every pixel between the line's two crossings ``ends_px`` ``(2, 2)`` of the
+    largest ring (beyond them the diameter is not printed; on a steeply tilted target a
+    fixed reach would take mostly paper or surroundings along the short diameter), inside
+    the image. The rings cross the line and its parallels alike, so only the samples whose
+    parallels are on paper (darker than half ``ring_dark``, the rings' darkness, on neither)
+    count: there a printed diameter shows its own darkness, a line through the centre that
+    is not a diameter shows none. Closely spaced thick rings would otherwise fill the median.
+    Samples where the print is hidden (``bright``, a laser stripe along the line) on the line
+    or its parallels tell nothing and are left out.
+    """
+    h, w = d.shape
+    ln = _unit_line(line)
+    n = ln[:2]
+    e = np.array([-n[1], n[0]])
+    foot = c - (float(n @ c) + ln[2]) * n
+    t_ends = (np.asarray(ends_px, dtype=np.float64) - foot) @ e
+    t = np.arange(float(t_ends.min()), float(t_ends.max()) + 0.5, 1.0)
+    pts = foot + t[:, None] * e
+    inside = (
+        (pts[:, 0] > offset_px + 1)
+        & (pts[:, 0] < w - offset_px - 2)
+        & (pts[:, 1] > offset_px + 1)
+        & (pts[:, 1] < h - offset_px - 2)
+    )
+    pts = pts[inside]
+    if len(pts) < 10:
+        return 0.0
+
+    def along(img: NDArray, p: NDArray) -> NDArray:
+        return ndimage.map_coordinates(img, [p[:, 1], p[:, 0]], order=1)
+
+    sides = np.stack([along(d, pts + offset_px * n), along(d, pts - offset_px * n)])
+    seen = np.ones_like(sides, dtype=bool)
+    on_line = np.ones(len(pts), dtype=bool)
+    if bright is not None:
+        seen[0] = along(bright, pts + offset_px * n) == 0
+        seen[1] = along(bright, pts - offset_px * n) == 0
+        on_line = along(bright, pts) == 0
+    # each sample against the parallels that are seen (one, where a stripe covers the other)
+    paper = on_line & seen.any(axis=0) & np.all((sides < 0.5 * ring_dark) | ~seen, axis=0)
+    if np.count_nonzero(paper) < 10:
+        return 0.0
+    side = np.sum(np.where(seen, sides, 0.0), axis=0) / np.maximum(seen.sum(axis=0), 1)
+    return float(np.median(along(d, pts[paper]) - side[paper]))
