@@ -249,13 +249,7 @@ def _refine_axes(
         else:
             stripe_over = None
         pts = np.asarray(samples)
-        inside = (
-            (pts[:, 0] > half_window + 3)
-            & (pts[:, 0] < w - half_window - 4)
-            & (pts[:, 1] > half_window + 3)
-            & (pts[:, 1] < h - half_window - 4)
-        )
-        pts = pts[inside]
+        pts = pts[_inside(pts, half_window + 3, (w, h))]
         search = max(1.0, 2 * half_window)
         # The centroid's window across the diameter must not reach a ring: where a ring runs
         # nearly along the diameter (a steep tilt puts its flank there) it would, though the
@@ -264,20 +258,15 @@ def _refine_axes(
         reach = half_window + 0.5 * line_px + 1.5
         for conic in conics.values():
             pts = pts[_normal_clear_of(conic, pts, ln[:2], reach)]
-        if len(pts) < 4:
-            if stripe_over is None:
-                return None
-            hidden = index
-            new_lines.append(ln)
-            new_pts.append(np.zeros((0, 2)))
-            continue
-        normals = np.tile(ln[:2], (len(pts), 1))
-        off, contrast, good = _locate_centres(
-            coef, pts, normals, half_window, search, 0.125, bright
-        )
-        med = np.median(contrast[good]) if good.any() else 0.0
-        good &= contrast > 0.5 * med
-        found = (pts + off[:, None] * normals)[good]
+        found = np.zeros((0, 2))
+        if len(pts) >= 4:
+            normals = np.tile(ln[:2], (len(pts), 1))
+            off, contrast, good = _locate_centres(
+                coef, pts, normals, half_window, search, 0.125, bright
+            )
+            med = np.median(contrast[good]) if good.any() else 0.0
+            good &= contrast > 0.5 * med
+            found = (pts + off[:, None] * normals)[good]
         if len(found) < 4:
             if stripe_over is None:
                 return None
@@ -311,6 +300,17 @@ def _refine_axes(
             return None
         new_lines[hidden] = conjugate_diameter(new_lines[1 - hidden], c, conics)
     return new_lines, new_pts
+
+
+def _inside(points: NDArray, margin: float, size: tuple[int, int]) -> NDArray:
+    """Whether each of the ``(M, 2)`` points lies over ``margin`` px inside the image."""
+    w, h = size
+    return (
+        (points[:, 0] > margin)
+        & (points[:, 0] < w - margin - 1)
+        & (points[:, 1] > margin)
+        & (points[:, 1] < h - margin - 1)
+    )
 
 
 def _under_stripe(bright: NDArray, points: NDArray, normal: NDArray, reach: float) -> bool:
@@ -355,13 +355,7 @@ def _line_evidence(
     t_ends = (np.asarray(ends_px, dtype=np.float64) - foot) @ e
     t = np.arange(float(t_ends.min()), float(t_ends.max()) + 0.5, 1.0)
     pts = foot + t[:, None] * e
-    inside = (
-        (pts[:, 0] > offset_px + 1)
-        & (pts[:, 0] < w - offset_px - 2)
-        & (pts[:, 1] > offset_px + 1)
-        & (pts[:, 1] < h - offset_px - 2)
-    )
-    pts = pts[inside]
+    pts = pts[_inside(pts, offset_px + 1, (w, h))]
     if len(pts) < 10:
         return 0.0
 
