@@ -16,13 +16,16 @@ The pipeline, every geometric fact coming from the target spec:
 5. *Sub-pixel*: for every ring, profiles along the conic's normals are sampled (bicubic) and
    the centre line of the printed line found as the fixed point of a symmetric-window
    centroid; the conic is refitted (algebraic, then Sampson distance) with outlier rejection.
-   The diameter lines are located the same way between the rings.
+   The diameter lines are located the same way between the rings; a diameter that a laser
+   stripe hides (the paper's set-up puts the stripe on A-O-B) is the printed one's
+   conjugate with respect to the ring conics (exact for concentric circles).
 6. *Labelling*: the orientation disc, looked for where each of the four candidate labellings
    puts it, must be dark at exactly one of them; A is that end, and C follows from z out of
    the face. Any doubt gives ``ok=False`` with a reason.
 
 Steps 1-3 are in :mod:`calibration.detection.concentric_rays`, 4-5 in
-:mod:`calibration.detection.concentric_rings` and 6 in
+:mod:`calibration.detection.concentric_rings` (the diameters in
+:mod:`calibration.detection.concentric_axes`) and 6 in
 :mod:`calibration.detection.concentric_labels`; :func:`detect_concentric` here runs them.
 """
 
