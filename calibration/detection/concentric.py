@@ -286,7 +286,7 @@ def _detect_with_kernel(
     axis_lines = [l1 / np.linalg.norm(l1[:2]), l2 / np.linalg.norm(l2[:2])]
     rings: dict[int, tuple[NDArray, NDArray, NDArray]] = {}
     scanned_at: NDArray | None = None
-    hidden: int | None = None  # a diameter under a laser stripe: see _diameter_lines
+    hidden_axis: int | None = None  # a diameter under a laser stripe: see _diameter_lines
     for _ in range(2):
         rings = {}
         n_rays = int(np.clip(_perimeter_px(conics[max(conics)], c) / 3.0, 180, 1440))
@@ -341,17 +341,17 @@ def _detect_with_kernel(
         if scanned_at is None or np.linalg.norm(c_new - scanned_at) > 0.5:
             scanned = _diameter_lines(z_rays, c_new, conics, line_px, spacing_px)
             if scanned is not None:
-                (axis_lines, hidden), scanned_at = scanned, c_new
+                (axis_lines, hidden_axis), scanned_at = scanned, c_new
         c = c_new
         axis_res = _refine_axes(
-            coef, axis_lines, c, conics, radii, half_window, line_px, (w, h), bright, hidden
+            coef, axis_lines, c, conics, radii, half_window, line_px, (w, h), bright, hidden_axis
         )
         if axis_res is None:
             return TargetObservation.failed(
                 "diameter lines not measurable between the rings", size, KIND
             )
         axis_lines, axis_pts = axis_res
-        hidden = next((i for i, pts in enumerate(axis_pts) if len(pts) == 0), None)
+        hidden_axis = next((i for i, pts in enumerate(axis_pts) if len(pts) == 0), None)
         if _lines_angle_deg(*axis_lines) < 12.0:
             return TargetObservation.failed(
                 "diameter lines not measurable: both converged on one line", size, KIND
@@ -395,7 +395,7 @@ def _detect_with_kernel(
     # Both diameters must be printed lines, not any two lines through the centre.
     # (A diameter hidden under a stripe was found hidden, not dark: its conjugate is printed.)
     for index, (ln, ends_ln) in enumerate(zip(axis_lines, ends, strict=True)):
-        if index == hidden:
+        if index == hidden_axis:
             continue
         ev = _line_evidence(d, ln, center, ends_ln, 2.0 * half_window + 2.0, line_dark, bright)
         if ev < 0.3 * line_dark:

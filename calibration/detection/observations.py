@@ -60,9 +60,12 @@ class AxisObservation:
     axis : str
         ``"x"`` (through B, O, A) or ``"y"`` (through D, O, C).
     points_px : ndarray, shape (M, 2)
-        Points on the centre line of the printed diameter line.
+        Points on the centre line of the printed diameter line; none (M = 0) where a laser
+        stripe hides the diameter.
     line : ndarray, shape (3,)
-        Homogeneous line ``l . (u, v, 1) = 0`` fitted to them, ``|l[:2]| = 1``.
+        Homogeneous line ``l . (u, v, 1) = 0`` fitted to them, ``|l[:2]| = 1``; for a hidden
+        diameter, the other one's conjugate with respect to the ring conics
+        (:func:`calibration.detection.concentric_axes.conjugate_diameter`).
     """
 
     axis: str
