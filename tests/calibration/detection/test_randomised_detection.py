@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from calibration.detection.detect import detect_target
+from calibration.detection.observations import TargetObservation
 from calibration.symmetry import relabel
 from scanner.virtual_cell.randomised import (
     RenderedView,
@@ -86,6 +87,19 @@ def test_views_the_benchmark_missed_are_detected_and_labelled_right(view: int, w
     assert worst < max(1.5, 0.3 * v.min_spacing_px)
 
 
+def _detected_stripe_view(
+    seed: int, view: int, what: str
+) -> tuple[RenderedView, TargetObservation, float, float]:
+    """Benchmark view ``seed:view`` (a detectable one with a laser stripe), detected: the
+    view, the observation, its centre and worst named-point errors (px)."""
+    rng = np.random.default_rng([seed, view, 1])
+    v = render_view(draw_conditions(rng, has_target=True), rng)
+    assert v.detectable and v.conditions.laser
+    obs = detect_target(v.image, v.spec)
+    assert obs, f"{what}: {obs.reason}"
+    return (v, obs, *_errors(v, obs))
+
+
 @pytest.mark.parametrize(
     ("seed", "view", "what"),
     [
@@ -101,12 +115,7 @@ def test_views_with_a_laser_stripe_over_the_target_are_detected_and_labelled_rig
 ):
     # Views of benchmarks/bench_detection.py refused (or, for 0:20, mislabelled while the
     # others were mended) before 2026-11-26; each for the reason ``what``.
-    rng = np.random.default_rng([seed, view, 1])
-    v = render_view(draw_conditions(rng, has_target=True), rng)
-    assert v.detectable and v.conditions.laser
-    obs = detect_target(v.image, v.spec)
-    assert obs, f"{what}: {obs.reason}"
-    centre, worst = _errors(v, obs)
+    v, _, centre, worst = _detected_stripe_view(seed, view, what)
     assert centre < 1.0  # (a stripe over O leaves few points near it)
     assert worst < max(1.5, 0.3 * v.min_spacing_px), what
 
@@ -124,13 +133,8 @@ def test_a_diameter_under_a_laser_stripe_is_the_printed_ones_conjugate(
     # Views of benchmarks/bench_detection.py refused before 2026-11-26 ("diameter line not
     # printed", "not measurable"): the hidden diameter has no points of its own, its line is
     # the conjugate of the printed one, and the points named on it are right.
-    rng = np.random.default_rng([seed, view, 1])
-    v = render_view(draw_conditions(rng, has_target=True), rng)
-    assert v.detectable and v.conditions.laser
-    obs = detect_target(v.image, v.spec)
-    assert obs, f"{what}: {obs.reason}"
+    _, obs, centre, worst = _detected_stripe_view(seed, view, what)
     assert sorted(len(a.points_px) for a in obs.axis_points)[0] == 0, what
-    centre, worst = _errors(v, obs)
     assert centre < 0.3
     assert worst < 1.0, what
 
