@@ -197,14 +197,14 @@ def _refine_axes(
     line_px: float,
     size: tuple[int, int],
     bright: NDArray | None = None,
-    hidden: int | None = None,
+    hidden_axis: int | None = None,
 ) -> tuple[list[NDArray], list[NDArray]] | None:
     """Sub-pixel points on both diameter lines, between the rings; refitted lines.
 
     A profile across a diameter runs along the rings beside it, so it only has to stay clear
     of their printed lines and blur: between closely spaced rings the points keep half a
     line width and 1.5 px from them rather than a whole profile window. The line
-    ``hidden`` under a laser stripe, or one that gives too few points where the stripe
+    ``hidden_axis`` under a laser stripe, or one that gives too few points where the stripe
     covers most of it, has no points: it is the refitted other one's conjugate
     (:func:`conjugate_diameter`).
     """
@@ -212,7 +212,7 @@ def _refine_axes(
     keys = sorted(conics)
     new_lines, new_pts = [], []
     for index, ln in enumerate(axis_lines):
-        if index == hidden:
+        if index == hidden_axis:
             new_lines.append(ln)
             new_pts.append(np.zeros((0, 2)))
             continue
@@ -239,15 +239,6 @@ def _refine_axes(
                     samples.append(c + sgn * tt * dirv)
         if len(samples) < 4:
             return None
-        if (
-            bright is not None
-            and hidden is None
-            and _under_stripe(bright, np.asarray(samples), ln[:2], half_window + 1.0)
-        ):
-            # the line is measured on the paper the stripe leaves, if at all
-            stripe_over = index
-        else:
-            stripe_over = None
         pts = np.asarray(samples)
         pts = pts[_inside(pts, half_window + 3, (w, h))]
         search = max(1.0, 2 * half_window)
@@ -268,9 +259,15 @@ def _refine_axes(
             good &= contrast > 0.5 * med
             found = (pts + off[:, None] * normals)[good]
         if len(found) < 4:
-            if stripe_over is None:
+            # too few points: refused, unless a stripe covers the line (its conjugate then)
+            covered = (
+                bright is not None
+                and hidden_axis is None
+                and _under_stripe(bright, np.asarray(samples), ln[:2], half_window + 1.0)
+            )
+            if not covered:
                 return None
-            hidden = index
+            hidden_axis = index
             new_lines.append(ln)
             new_pts.append(np.zeros((0, 2)))
             continue
@@ -295,10 +292,10 @@ def _refine_axes(
                 break
         new_lines.append(line)
         new_pts.append(kept)
-    if hidden is not None:
-        if len(new_pts[1 - hidden]) == 0:
+    if hidden_axis is not None:
+        if len(new_pts[1 - hidden_axis]) == 0:
             return None
-        new_lines[hidden] = conjugate_diameter(new_lines[1 - hidden], c, conics)
+        new_lines[hidden_axis] = conjugate_diameter(new_lines[1 - hidden_axis], c, conics)
     return new_lines, new_pts
 
 

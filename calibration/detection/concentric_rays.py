@@ -15,6 +15,11 @@ from numpy.typing import NDArray
 from calibration.detection.conics import intersect_lines
 from calibration.detection.ray_kernels import label_rays, tile_thresholds
 
+#: A ray's crossings fit the radii when the projectivity's largest residual is at most
+#: ``FIT_TOL_PX + FIT_TOL_FRACTION * t_last`` px (the coarse crossings' own error and the lens).
+FIT_TOL_PX = 1.5
+FIT_TOL_FRACTION = 0.01
+
 # --------------------------------------------------------------------------------------------
 # Image preparation
 
@@ -119,14 +124,14 @@ def _bright_mask(img: NDArray, kernel_px: int) -> NDArray:
     return bright.astype(np.float64)
 
 
-def _noise_threshold(d: NDArray, bg: NDArray | None = None, hidden: NDArray | None = None) -> float:
+def _noise_threshold(d: NDArray, live: NDArray | None = None) -> float:
     """Darkness above which a pixel is not noise: median + 6 MAD over the lit target area.
 
-    The statistics are those of the lit, unclipped pixels (``bg`` given) only: dark or
-    saturated surroundings filling most of the frame carry no paper noise, and over the
-    whole image they would drive the MAD to zero.
+    The statistics are those of the ``live`` pixels (lit, unclipped, not hidden:
+    :func:`_live_mask`) only: dark or saturated surroundings filling most of the frame carry
+    no paper noise, and over the whole image they would drive the MAD to zero.
     """
-    sel = d[_live_mask(d, bg, hidden)] if bg is not None else d.ravel()
+    sel = d[live] if live is not None else d.ravel()
     if sel.size < 100:
         sel = d.ravel()
     step = max(1, sel.size // 200_000)
@@ -145,8 +150,8 @@ def _threshold_map(d: NDArray, bg: NDArray, tile_px: int, hidden: NDArray | None
     (:func:`_noise_threshold`). The tile grid is interpolated to every pixel.
     """
     h, w = d.shape
-    glob = _noise_threshold(d, bg, hidden)
     live = _live_mask(d, bg, hidden)
+    glob = _noise_threshold(d, live)
     t = max(16, int(tile_px))
     ny, nx = max(1, h // t), max(1, w // t)
     th, tw = (h // ny) // 2 * 2, (w // nx) // 2 * 2
@@ -252,7 +257,7 @@ def _label_rays(
     angles = angles[keep]
     count, peaks, err = label_rays(d, c, angles, radii, thr)
     last = peaks[np.arange(len(angles)), np.maximum(count - 1, 0)]
-    ok = (count >= 3) & (err <= 1.5 + 0.01 * np.nan_to_num(last))
+    ok = (count >= 3) & (err <= FIT_TOL_PX + FIT_TOL_FRACTION * np.nan_to_num(last))
     per_ring: list[list[tuple[float, NDArray]]] = [[] for _ in radii]
     for i in np.flatnonzero(ok):
         dirv = np.array([np.cos(angles[i]), np.sin(angles[i])])

@@ -161,13 +161,15 @@ def test_line_centres_find_a_drawn_line_and_its_depth():
     assert np.all(contrast > 0.85 * depth) and np.all(contrast <= depth + 1e-12)
 
 
-def test_line_centres_stay_within_the_search():
-    tau = np.arange(-6.0, 6.0 + 0.125, 0.25)
-    prof = np.exp(-0.5 * ((tau - 5.0) / 0.8) ** 2)[None, :]  # a line beyond the search
-    centre, _ = line_centres(prof, tau, half_window=2.0, search=2.0)
-    assert abs(centre[0]) <= 2.0
+def test_line_centres_take_the_line_within_the_search_not_a_darker_one_beyond():
+    tau = np.arange(-8.0, 8.0 + 0.125, 0.25)
+    near = 0.3 * np.exp(-0.5 * ((tau + 0.7) / 0.8) ** 2)  # the line sought, 0.7 px off
+    far = 0.9 * np.exp(-0.5 * ((tau - 6.0) / 0.8) ** 2)  # a darker neighbour beyond
+    centre, contrast = line_centres((near + far)[None, :], tau, half_window=2.5, search=3.0)
+    assert abs(centre[0] + 0.7) < 0.01
+    assert abs(contrast[0] - 0.3) < 0.03
     with pytest.raises(ValueError, match="expected shapes"):
-        line_centres(prof, tau[:-1], 2.0, 2.0)
+        line_centres(near[None, :], tau[:-1], 2.0, 2.0)
 
 
 def test_tile_thresholds_give_numpys_statistics_with_nans_and_empty_tiles():
