@@ -42,7 +42,7 @@ from calibration.detection.concentric_axes import (
     _diameter_lines,
     _line_evidence,
     _lines_angle_deg,
-    _refine_axes,
+    _settled_axes,
 )
 from calibration.detection.concentric_labels import (
     _axis_dir,
@@ -120,6 +120,9 @@ def detect_concentric(
     """
     s = settings or ConcentricDetectorSettings()
     img = to_gray_float(image)
+    # One grey level of the image as given, in to_gray_float's units (a float image: as
+    # fine as a 16-bit one's).
+    grey_step = 1.0 / 255.0 if np.asarray(image).dtype == np.uint8 else 1.0 / 65535.0
     h, w = img.shape
     size = (int(w), int(h))
     if min(h, w) < 32:
@@ -131,9 +134,10 @@ def detect_concentric(
     first = max(9, min(h, w) // 40)
     kernels = sorted({first, max(5, first // 2), max(5, first // 4)}, reverse=True)
     refused, furthest = None, -1
+    floor: list[float] = []  # the darkness threshold's floor, set by the first scale
     for kernel in kernels:
         progress = [0]
-        obs = _detect_with_kernel(img, target, s, kernel, size, progress)
+        obs = _detect_with_kernel(img, target, s, kernel, size, progress, grey_step, floor)
         if obs:
             return obs
         if progress[0] > furthest:  # the reason of the scale that got furthest is reported
@@ -205,11 +209,15 @@ def _detect_with_kernel(
     kernel: int,
     size: tuple[int, int],
     progress: list[int],
+    grey_step: float,
+    floor: list[float],
 ) -> TargetObservation:
     """:func:`detect_concentric` with the coarse stage's closing kernel ``kernel`` px.
 
     ``progress[0]`` is set to the number of stages passed (lines, centre, coarse pencil,
     rings measured, tilt, diameters), so that of several refusals the most telling is shown.
+    ``grey_step``: one grey level of the image as given; ``floor``: the darkness threshold's
+    floor (:func:`_threshold_map`), set by the first scale (empty: this is the first).
     """
     h, w = img.shape
     radii = np.asarray(target.ring_radii_mm, dtype=np.float64)
@@ -218,7 +226,11 @@ def _detect_with_kernel(
     hidden = _bright_mask(img, kernel) > 0
     d, bg = _darkness(cv2.GaussianBlur(img, (0, 0), 1.0), kernel, hidden)
     # Darkness over its local noise threshold: > 1 where a printed line may be.
-    z = d / _threshold_map(d, bg, 4 * kernel, hidden)
+    thr_map, used = _threshold_map(
+        d, bg, 4 * kernel, hidden, floor[0] if floor else None, grey_step
+    )
+    floor[:] = [used]
+    z = d / thr_map
     thr = 1.0
     mask = (z > thr).astype(np.uint8) * 255
     # Rays stop where the print is hidden (laser stripe, glare): see label_rays.
@@ -343,13 +355,11 @@ def _detect_with_kernel(
             if scanned is not None:
                 (axis_lines, hidden_axis), scanned_at = scanned, c_new
         c = c_new
-        axis_res = _refine_axes(
+        axis_res = _settled_axes(
             coef, axis_lines, c, conics, radii, half_window, line_px, (w, h), bright, hidden_axis
         )
-        if axis_res is None:
-            return TargetObservation.failed(
-                "diameter lines not measurable between the rings", size, KIND
-            )
+        if isinstance(axis_res, str):
+            return TargetObservation.failed(axis_res, size, KIND)
         axis_lines, axis_pts = axis_res
         hidden_axis = next((i for i, pts in enumerate(axis_pts) if len(pts) == 0), None)
         if _lines_angle_deg(*axis_lines) < 12.0:

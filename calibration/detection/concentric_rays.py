@@ -20,6 +20,12 @@ from calibration.detection.ray_kernels import label_rays, tile_thresholds
 FIT_TOL_PX = 1.5
 FIT_TOL_FRACTION = 0.01
 
+#: The darkness threshold's floor is the lit paper's own noise level where that is lower
+#: (quiet paper under a faint print), never higher than this: the fixed floor of the
+#: detector before 2026-11-26, under which most views' statistics at the smaller closings
+#: degenerate (see :func:`_threshold_map`).
+MAX_DARKNESS_FLOOR = 0.02
+
 # --------------------------------------------------------------------------------------------
 # Image preparation
 
@@ -71,11 +77,12 @@ def _lit_level(bg: NDArray, hidden: NDArray | None = None) -> float:
     return float(np.median(bright)) if bright.size else top
 
 
-def _live_mask(d: NDArray, bg: NDArray, hidden: NDArray | None = None) -> NDArray:
-    """Pixels where a printed line could be seen: lit, not clipped at the white level, not
-    ``hidden`` (a laser stripe or glare, whose darkness is 0 without noise: a tile it fills
-    would otherwise learn a threshold far below the paper's noise)."""
-    live = bg >= 0.3 * _lit_level(bg, hidden)
+def _live_mask(bg: NDArray, lit: float, hidden: NDArray | None = None) -> NDArray:
+    """Pixels where a printed line could be seen: lit (the background at least 30 % of the
+    paper's level ``lit``), not clipped at the white level, not ``hidden`` (a laser stripe or
+    glare, whose darkness is 0 without noise: a tile it fills would otherwise learn a
+    threshold far below the paper's noise)."""
+    live = bg >= 0.3 * lit
     if hidden is not None:
         live &= ~hidden
     top = float(bg.max())
@@ -129,7 +136,8 @@ def _noise_threshold(d: NDArray, live: NDArray | None = None) -> float:
 
     The statistics are those of the ``live`` pixels (lit, unclipped, not hidden:
     :func:`_live_mask`) only: dark or saturated surroundings filling most of the frame carry
-    no paper noise, and over the whole image they would drive the MAD to zero.
+    no paper noise, and over the whole image they would drive the MAD to zero. (0 where most
+    of them are: :func:`_threshold_map` sets a floor.)
     """
     sel = d[live] if live is not None else d.ravel()
     if sel.size < 100:
@@ -138,20 +146,46 @@ def _noise_threshold(d: NDArray, live: NDArray | None = None) -> float:
     sel = sel[::step]
     med = float(np.median(sel))
     mad = float(np.median(np.abs(sel - med))) * 1.4826
-    return max(0.02, med + 6.0 * mad)
+    return med + 6.0 * mad
 
 
-def _threshold_map(d: NDArray, bg: NDArray, tile_px: int, hidden: NDArray | None = None) -> NDArray:
+def _threshold_map(
+    d: NDArray,
+    bg: NDArray,
+    tile_px: int,
+    hidden: NDArray | None = None,
+    floor: float | None = None,
+    grey_step: float = 1.0 / 255.0,
+) -> tuple[NDArray, float]:
     """Per-pixel darkness threshold: median + 6 MAD of ``d`` in tiles of the lit area.
 
     Noise and paper grain differ between the card and its surroundings and over the card
     (uneven light): each tile of about ``tile_px`` learns its own level from its lit,
     unclipped pixels; tiles without enough of them take the whole lit area's
     (:func:`_noise_threshold`). The tile grid is interpolated to every pixel.
+
+    No threshold goes below ``floor``: where a closing narrower than the paper's noise
+    pattern follows the noise, most of the paper's darkness is exactly 0 and its median and
+    MAD say nothing. ``None``: this map sets it, from the whole lit area's level (a wide
+    closing, the detector's first scale; where even that is 0, the level of the paper's
+    darkness above 0), at most ``MAX_DARKNESS_FLOOR`` and at least one grey level of the
+    image (``grey_step``, in the image's units: ``1 / 255`` for 8 bits).
+
+    Returns
+    -------
+    ndarray, shape (H, W), and float
+        The threshold map and the floor it used.
     """
     h, w = d.shape
-    live = _live_mask(d, bg, hidden)
-    glob = _noise_threshold(d, live)
+    lit = _lit_level(bg, hidden)
+    live = _live_mask(bg, lit, hidden)
+    level = _noise_threshold(d, live)
+    if floor is None:
+        quantum = grey_step / lit if lit > 0 else grey_step
+        # (most of the paper exactly 0 even here: the level of the rest, the noise's tail)
+        paper = level if level > 0 else _noise_threshold(d, live & (d > 0))
+        floor = max(quantum, min(MAX_DARKNESS_FLOOR, paper))
+    glob = max(floor, level)
     t = max(16, int(tile_px))
     ny, nx = max(1, h // t), max(1, w // t)
     th, tw = (h // ny) // 2 * 2, (w // nx) // 2 * 2
@@ -164,8 +198,8 @@ def _threshold_map(d: NDArray, bg: NDArray, tile_px: int, hidden: NDArray | None
     # thick rings may cover half a tile).
     thr = tile_thresholds(blocks)
     enough = count >= 0.25 * blocks.shape[2]
-    thr = np.where(enough & np.isfinite(thr), np.maximum(thr, 0.02), glob).astype(np.float32)
-    return cv2.resize(thr, (w, h), interpolation=cv2.INTER_LINEAR).astype(np.float64)
+    thr = np.where(enough & np.isfinite(thr), np.maximum(thr, floor), glob).astype(np.float32)
+    return cv2.resize(thr, (w, h), interpolation=cv2.INTER_LINEAR).astype(np.float64), floor
 
 
 # --------------------------------------------------------------------------------------------

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from calibration.detection.concentric_rays import _darkness, _lit_level, _threshold_map
 
@@ -16,7 +17,7 @@ def test_a_laser_stripe_filling_tiles_does_not_lower_their_threshold() -> None:
     hidden = np.zeros(d.shape, bool)
     hidden[150:260, :] = True
     d[hidden] = 0.0
-    paper = _threshold_map(d, bg, 48, hidden)
+    paper, _ = _threshold_map(d, bg, 48, hidden)
     # the paper's own level passes almost none of its noise
     assert np.mean(d[:140] > paper[:140]) < 0.01
     assert paper[50, 240] > 0.025
@@ -24,7 +25,7 @@ def test_a_laser_stripe_filling_tiles_does_not_lower_their_threshold() -> None:
     # noise-free tile; beside it the paper's
     assert paper[205, 240] >= 0.8 * paper[50, 240]
     assert np.mean(d[262:300] > paper[262:300]) < 0.01
-    blind = _threshold_map(d, bg, 48)
+    blind, _ = _threshold_map(d, bg, 48)
     assert blind[205, 240] <= 0.021  # what it was without the hidden mask
 
 
@@ -46,3 +47,58 @@ def test_the_lit_level_is_the_papers_not_a_laser_stripes() -> None:
     assert d[101, 200] == 0.0  # taken for surroundings
     d, _ = _darkness(img, 9, hidden)
     assert abs(d[101, 200] - 0.4) < 0.03
+
+
+def test_a_faint_print_on_quiet_paper_clears_its_threshold() -> None:
+    # Issue #15: 20 grey levels of contrast under a 1 px line on paper at 200 give a darkness
+    # of 0.01-0.03 after the blur; a fixed floor of 0.02 refused such views. The threshold is
+    # the paper's own noise over a floor of one grey level.
+    rng = np.random.default_rng(7)
+    lit = 200.0 / 255.0
+    d = np.abs(rng.normal(0.0, 0.002, (300, 400)))
+    bg = np.full(d.shape, lit) + rng.uniform(-0.01, 0.0, d.shape)
+    lines = np.zeros(d.shape, bool)
+    lines[:, 50::40] = True
+    d[lines] = 0.015
+    thr, floor = _threshold_map(d, bg, 48)
+    assert floor < 0.02
+    assert np.all(d[lines] > thr[lines])
+    assert np.mean(d[~lines] > thr[~lines]) < 0.01
+
+
+def test_a_threshold_never_goes_below_one_grey_level() -> None:
+    # Noise under the quantisation: the MAD is 0 and only the floor holds noise out.
+    lit = 100.0 / 255.0
+    bg = np.full((200, 200), lit) - np.linspace(0, 0.01, 200)[None, :]
+    d = np.zeros(bg.shape)
+    one_level = (1.0 / 255.0) / lit
+    thr, floor = _threshold_map(d, bg, 48)
+    assert floor == pytest.approx(one_level, rel=0.05)
+    assert np.allclose(thr, floor)
+    # a 16-bit image's grey level is finer
+    thr, floor = _threshold_map(d, bg, 48, grey_step=1 / 65535)
+    assert floor == pytest.approx(one_level / 257, rel=0.05)
+
+
+def test_a_smaller_closing_keeps_the_first_scales_floor() -> None:
+    # A closing that follows the noise leaves most of the paper's darkness at 0: its own
+    # statistics would set no threshold at all.
+    rng = np.random.default_rng(3)
+    bg = np.full((200, 200), 0.8)
+    d = np.where(rng.random(bg.shape) < 0.7, 0.0, np.abs(rng.normal(0, 0.004, bg.shape)))
+    thr, floor = _threshold_map(d, bg, 48, floor=0.015)
+    assert floor == 0.015
+    assert thr.min() >= 0.015 * (1 - 1e-6)  # (a float32 map)
+    assert np.mean(d > thr) < 0.01
+
+
+def test_a_first_scale_with_mostly_zero_darkness_learns_its_floor_from_the_rest() -> None:
+    # A closing that follows the noise even at the first scale: over half of the paper's
+    # darkness is exactly 0, its median and MAD are 0, and a floor of one grey level would
+    # let the noise's tail through.
+    rng = np.random.default_rng(5)
+    bg = np.full((240, 320), 0.8) - np.linspace(0, 0.01, 320)[None, :]  # (lit, not clipped)
+    d = np.where(rng.random(bg.shape) < 0.6, 0.0, np.abs(rng.normal(0, 0.002, bg.shape)))
+    thr, floor = _threshold_map(d, bg, 48)
+    assert 0.005 < floor < 0.02
+    assert np.mean(d > thr) < 0.001
