@@ -10,6 +10,7 @@ import numpy as np
 from calibration.detection.concentric_axes import (
     _diameter_lines,
     _line_evidence,
+    _line_shift_px,
     _lines_angle_deg,
     _normal_clear_of,
     conjugate_diameter,
@@ -147,3 +148,18 @@ def test_a_diameter_under_a_laser_stripe_is_the_printed_ones_conjugate() -> None
     # ... but a diameter that is simply not printed is not made up
     z, conics = _rings_with_diameters((110.0,))
     assert _diameter_lines(z, c, conics, 2.0, 13.0) is None
+
+
+def test_a_lines_shift_is_measured_within_the_outer_ring():
+    # Lines through the centre of rings up to 100 px: a turn by theta moves the far ends by
+    # 100 sin(theta), a parallel shift by its offset.
+    c = np.array([320.0, 240.0])
+    conics = {0: _circle(50.0), 1: _circle(100.0)}
+    old = np.array([0.0, 1.0, -240.0])  # y = 240
+    theta = np.radians(2.0)
+    turned = np.array([-np.sin(theta), np.cos(theta), 0.0])
+    turned[2] = -turned[:2] @ c
+    assert np.isclose(_line_shift_px(old, turned, c, conics), 100 * np.sin(theta), rtol=1e-6)
+    shifted = np.array([0.0, -2.0, 2 * 240.7])  # y = 240.7, not normalised
+    assert np.isclose(_line_shift_px(old, shifted, c, conics), 0.7)
+    assert _line_shift_px(old, old, c, conics) == 0.0
