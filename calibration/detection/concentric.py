@@ -120,9 +120,6 @@ def detect_concentric(
     """
     s = settings or ConcentricDetectorSettings()
     img = to_gray_float(image)
-    # One grey level of the image as given, in to_gray_float's units (a float image: as
-    # fine as a 16-bit one's).
-    grey_step = 1.0 / 255.0 if np.asarray(image).dtype == np.uint8 else 1.0 / 65535.0
     h, w = img.shape
     size = (int(w), int(h))
     if min(h, w) < 32:
@@ -137,7 +134,7 @@ def detect_concentric(
     floor: list[float] = []  # the darkness threshold's floor, set by the first scale
     for kernel in kernels:
         progress = [0]
-        obs = _detect_with_kernel(img, target, s, kernel, size, progress, grey_step, floor)
+        obs = _detect_with_kernel(img, target, s, kernel, size, progress, floor)
         if obs:
             return obs
         if progress[0] > furthest:  # the reason of the scale that got furthest is reported
@@ -209,15 +206,14 @@ def _detect_with_kernel(
     kernel: int,
     size: tuple[int, int],
     progress: list[int],
-    grey_step: float,
     floor: list[float],
 ) -> TargetObservation:
     """:func:`detect_concentric` with the coarse stage's closing kernel ``kernel`` px.
 
     ``progress[0]`` is set to the number of stages passed (lines, centre, coarse pencil,
     rings measured, tilt, diameters), so that of several refusals the most telling is shown.
-    ``grey_step``: one grey level of the image as given; ``floor``: the darkness threshold's
-    floor (:func:`_threshold_map`), set by the first scale (empty: this is the first).
+    ``floor``: the darkness threshold's floor (:func:`_threshold_map`), set by the first
+    scale (empty: this is the first).
     """
     h, w = img.shape
     radii = np.asarray(target.ring_radii_mm, dtype=np.float64)
@@ -226,9 +222,7 @@ def _detect_with_kernel(
     hidden = _bright_mask(img, kernel) > 0
     d, bg = _darkness(cv2.GaussianBlur(img, (0, 0), 1.0), kernel, hidden)
     # Darkness over its local noise threshold: > 1 where a printed line may be.
-    thr_map, used = _threshold_map(
-        d, bg, 4 * kernel, hidden, floor[0] if floor else None, grey_step
-    )
+    thr_map, used = _threshold_map(d, bg, 4 * kernel, hidden, floor[0] if floor else None)
     floor[:] = [used]
     z = d / thr_map
     thr = 1.0
@@ -358,10 +352,11 @@ def _detect_with_kernel(
         axis_res = _settled_axes(
             coef, axis_lines, c, conics, radii, half_window, line_px, (w, h), bright, hidden_axis
         )
-        if isinstance(axis_res, str):
-            return TargetObservation.failed(axis_res, size, KIND)
-        axis_lines, axis_pts = axis_res
-        hidden_axis = next((i for i, pts in enumerate(axis_pts) if len(pts) == 0), None)
+        if axis_res is None:
+            return TargetObservation.failed(
+                "diameter lines not measurable between the rings", size, KIND
+            )
+        axis_lines, axis_pts, hidden_axis = axis_res
         if _lines_angle_deg(*axis_lines) < 12.0:
             return TargetObservation.failed(
                 "diameter lines not measurable: both converged on one line", size, KIND

@@ -312,38 +312,42 @@ def _settled_axes(
     hidden_axis: int | None = None,
     tol_px: float = 0.1,
     max_rounds: int = 6,
-) -> tuple[list[NDArray], list[NDArray]] | str:
+) -> tuple[list[NDArray], list[NDArray], int | None] | None:
     """:func:`_refine_axes` repeated until neither line moves by more than ``tol_px`` within
-    the outer ring, at most ``max_rounds`` times; or why the lines are not measurable.
+    the outer ring, at most ``max_rounds`` times: the lines, their points and the index of a
+    line hidden under a stripe (``None``: both seen); ``None`` if not even the first round
+    measures them.
 
-    Each round samples the diameter along the line it was given, so a line that came in a
-    few degrees off (a Hough line through a small, steeply tilted target) is only turned
-    part of the way in one round. (A line may also settle into a small oscillation, its
-    trimmed points changing by one from round to round: the last round's is kept.)
+    Each round samples the diameter along the line it was given, so a line that came in
+    degrees off (a Hough line through a small, steeply tilted target: 26 deg on one
+    benchmark view) is only turned part of the way in one round. A line may also settle into
+    a small oscillation, its trimmed points changing by one from round to round; a later
+    round that measures nothing (its samples moved onto a ring) leaves the last one's.
     """
+    r_out = _perimeter_px(conics[max(conics)], c) / (2 * np.pi)
+    settled = None
     for _ in range(max_rounds):
         res = _refine_axes(
             coef, axis_lines, c, conics, radii, half_window, line_px, size, bright, hidden_axis
         )
         if res is None:
-            return "diameter lines not measurable between the rings"
-        moved = max(_line_shift_px(a, b, c, conics) for a, b in zip(axis_lines, res[0]))
+            break
+        moved = max(_line_shift_px(a, b, c, r_out) for a, b in zip(axis_lines, res[0]))
         axis_lines, axis_pts = res
         hidden_axis = next((i for i, pts in enumerate(axis_pts) if len(pts) == 0), None)
+        settled = (axis_lines, axis_pts, hidden_axis)
         if moved <= tol_px:
             break
-    return axis_lines, axis_pts
+    return settled
 
 
-def _line_shift_px(old: NDArray, new: NDArray, c: NDArray, conics: dict[int, NDArray]) -> float:
-    """Largest distance, px, from ``new`` to the points of ``old`` between its crossings
-    with the outer ring (lines through about ``c``)."""
+def _line_shift_px(old: NDArray, new: NDArray, c: NDArray, reach_px: float) -> float:
+    """Largest distance, px, from ``new`` to the points of ``old`` within ``reach_px`` of the
+    foot of ``c`` on it (the lines pass near ``c``, the centre)."""
     old, new = _unit_line(old), _unit_line(new)
     dirv = np.array([-old[1], old[0]])
     foot = c - (old[:2] @ c + old[2]) * old[:2]
-    reach = _conic_point_on_ray(conics[max(conics)], foot, np.vstack([dirv, -dirv]))
-    reach = np.where(np.isfinite(reach), reach, 0.0)
-    ends = np.vstack([foot + reach[0] * dirv, foot - reach[1] * dirv])
+    ends = np.vstack([foot + reach_px * dirv, foot - reach_px * dirv])
     return float(np.max(np.abs(ends @ new[:2] + new[2])))
 
 

@@ -20,10 +20,12 @@ from calibration.detection.ray_kernels import label_rays, tile_thresholds
 FIT_TOL_PX = 1.5
 FIT_TOL_FRACTION = 0.01
 
-#: The darkness threshold's floor is the lit paper's own noise level where that is lower
-#: (quiet paper under a faint print), never higher than this: the fixed floor of the
-#: detector before 2026-11-26, under which most views' statistics at the smaller closings
-#: degenerate (see :func:`_threshold_map`).
+#: The darkness threshold's floor (:func:`_threshold_map`) is the lit paper's own noise level,
+#: between these two: one grey level of an 8-bit image at the paper's level (no fainter print
+#: is looked for; a 16-bit image's finer steps show the paper's smooth texture there), and
+#: 0.02, the fixed floor of the detector before 2026-11-26 (quiet paper under a faint print
+#: lowers it; noisy paper does not raise it).
+MIN_DARKNESS_STEP = 1.0 / 255.0
 MAX_DARKNESS_FLOOR = 0.02
 
 # --------------------------------------------------------------------------------------------
@@ -155,7 +157,6 @@ def _threshold_map(
     tile_px: int,
     hidden: NDArray | None = None,
     floor: float | None = None,
-    grey_step: float = 1.0 / 255.0,
 ) -> tuple[NDArray, float]:
     """Per-pixel darkness threshold: median + 6 MAD of ``d`` in tiles of the lit area.
 
@@ -164,12 +165,12 @@ def _threshold_map(
     unclipped pixels; tiles without enough of them take the whole lit area's
     (:func:`_noise_threshold`). The tile grid is interpolated to every pixel.
 
-    No threshold goes below ``floor``: where a closing narrower than the paper's noise
-    pattern follows the noise, most of the paper's darkness is exactly 0 and its median and
-    MAD say nothing. ``None``: this map sets it, from the whole lit area's level (a wide
-    closing, the detector's first scale; where even that is 0, the level of the paper's
-    darkness above 0), at most ``MAX_DARKNESS_FLOOR`` and at least one grey level of the
-    image (``grey_step``, in the image's units: ``1 / 255`` for 8 bits).
+    No threshold goes below ``floor``: where a closing follows the noise (a narrow one, the
+    detector's smaller scales), most of the paper's darkness is exactly 0 and its median and
+    MAD say nothing. ``None``: this map sets it, from the whole lit area's level (at the
+    detector's first, widest closing; where even that is 0, the level of the darkness above
+    0), kept between ``MIN_DARKNESS_STEP / lit level`` and ``MAX_DARKNESS_FLOOR`` (the lower
+    bound wins on dim paper).
 
     Returns
     -------
@@ -181,10 +182,10 @@ def _threshold_map(
     live = _live_mask(bg, lit, hidden)
     level = _noise_threshold(d, live)
     if floor is None:
-        quantum = grey_step / lit if lit > 0 else grey_step
-        # (most of the paper exactly 0 even here: the level of the rest, the noise's tail)
+        # (more than half of the paper exactly 0 even here: the level of the rest)
         paper = level if level > 0 else _noise_threshold(d, live & (d > 0))
-        floor = max(quantum, min(MAX_DARKNESS_FLOOR, paper))
+        step = MIN_DARKNESS_STEP / lit if lit > 0 else MIN_DARKNESS_STEP
+        floor = max(step, min(MAX_DARKNESS_FLOOR, paper))
     glob = max(floor, level)
     t = max(16, int(tile_px))
     ny, nx = max(1, h // t), max(1, w // t)

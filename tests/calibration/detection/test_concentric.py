@@ -149,7 +149,7 @@ def test_of_several_scales_the_refusal_that_got_furthest_is_reported(monkeypatch
     stages = iter([(1, "no ring pencil found: 1 rings fitted"), (5, "diameter line not printed"),
                    (2, "radius ratios disagree")])  # fmt: skip
 
-    def fake(img, target, s, kernel, size, progress, grey_step, floor):
+    def fake(img, target, s, kernel, size, progress, floor):
         progress[0], reason = next(stages)
         return TargetObservation.failed(reason, size, "concentric_circles")
 
@@ -157,6 +157,26 @@ def test_of_several_scales_the_refusal_that_got_furthest_is_reported(monkeypatch
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert not obs
     assert obs.reason == "diameter line not printed"
+
+
+def test_the_first_scales_darkness_floor_holds_at_the_smaller_scales(monkeypatch):
+    # A narrow closing follows the noise and leaves most of the paper's darkness at 0: the
+    # smaller scales keep the floor the first (widest) one learnt from the paper.
+    calls = []
+    real = concentric._threshold_map
+
+    def spy(d, bg, tile_px, hidden=None, floor=None):
+        out = real(d, bg, tile_px, hidden, floor)
+        calls.append((floor, out[1]))
+        return out
+
+    monkeypatch.setattr(concentric, "_threshold_map", spy)
+    rng = np.random.default_rng(2)
+    noise = np.clip(rng.normal(150, 3, (480, 640)), 0, 255).astype(np.uint8)
+    assert not detect_concentric(noise, demo_target())
+    assert len(calls) == 3  # three closing scales
+    assert calls[0][0] is None
+    assert all(given == calls[0][1] and used == given for given, used in calls[1:])
 
 
 def test_too_oblique_is_refused():

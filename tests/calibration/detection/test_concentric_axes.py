@@ -154,12 +154,11 @@ def test_a_lines_shift_is_measured_within_the_outer_ring():
     # Lines through the centre of rings up to 100 px: a turn by theta moves the far ends by
     # 100 sin(theta), a parallel shift by its offset.
     c = np.array([320.0, 240.0])
-    conics = {0: _circle(50.0), 1: _circle(100.0)}
     old = np.array([0.0, 1.0, -240.0])  # y = 240
     theta = np.radians(2.0)
     turned = np.array([-np.sin(theta), np.cos(theta), 0.0])
     turned[2] = -turned[:2] @ c
-    assert np.isclose(_line_shift_px(old, turned, c, conics), 100 * np.sin(theta), rtol=1e-6)
+    assert np.isclose(_line_shift_px(old, turned, c, 100.0), 100 * np.sin(theta), rtol=1e-6)
     shifted = np.array([0.0, -2.0, 2 * 240.7])  # y = 240.7, not normalised
-    assert np.isclose(_line_shift_px(old, shifted, c, conics), 0.7)
-    assert _line_shift_px(old, old, c, conics) == 0.0
+    assert np.isclose(_line_shift_px(old, shifted, c, 100.0), 0.7)
+    assert _line_shift_px(old, old, c, 100.0) == 0.0

@@ -71,13 +71,14 @@ def test_a_threshold_never_goes_below_one_grey_level() -> None:
     lit = 100.0 / 255.0
     bg = np.full((200, 200), lit) - np.linspace(0, 0.01, 200)[None, :]
     d = np.zeros(bg.shape)
-    one_level = (1.0 / 255.0) / lit
     thr, floor = _threshold_map(d, bg, 48)
-    assert floor == pytest.approx(one_level, rel=0.05)
+    assert floor == pytest.approx((1.0 / 255.0) / lit, rel=0.05)
     assert np.allclose(thr, floor)
-    # a 16-bit image's grey level is finer
-    thr, floor = _threshold_map(d, bg, 48, grey_step=1 / 65535)
-    assert floor == pytest.approx(one_level / 257, rel=0.05)
+    # on dim paper one grey level is more than the old fixed floor, and wins
+    dim = bg * 0.15
+    _, floor = _threshold_map(d, dim, 48)
+    assert floor == pytest.approx((1.0 / 255.0) / (0.15 * lit), rel=0.05)
+    assert floor > 0.02
 
 
 def test_a_smaller_closing_keeps_the_first_scales_floor() -> None:
