@@ -42,6 +42,7 @@ from calibration.detection.concentric_axes import (
     _diameter_lines,
     _line_evidence,
     _lines_angle_deg,
+    _refine_axes,
     _settled_axes,
 )
 from calibration.detection.concentric_labels import (
@@ -350,7 +351,13 @@ def _detect_with_kernel(
                 (axis_lines, hidden_axis), scanned_at = scanned, c_new
         c = c_new
         axis_res = _settled_axes(
-            coef, axis_lines, c, conics, radii, half_window, line_px, (w, h), bright, hidden_axis
+            lambda lines, hidden, c=c, conics=conics: _refine_axes(
+                coef, lines, c, conics, radii, half_window, line_px, (w, h), bright, hidden
+            ),
+            axis_lines,
+            c,
+            conics,
+            hidden_axis,
         )
         if axis_res is None:
             return TargetObservation.failed(

@@ -10,6 +10,7 @@ puts the stripe along A-O-B) is the other one's conjugate (:func:`conjugate_diam
 from __future__ import annotations
 
 import itertools
+from collections.abc import Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -300,23 +301,18 @@ def _refine_axes(
 
 
 def _settled_axes(
-    coef: NDArray,
+    refit: Callable[[list[NDArray], int | None], tuple[list[NDArray], list[NDArray]] | None],
     axis_lines: list[NDArray],
     c: NDArray,
     conics: dict[int, NDArray],
-    radii: NDArray,
-    half_window: float,
-    line_px: float,
-    size: tuple[int, int],
-    bright: NDArray | None = None,
     hidden_axis: int | None = None,
     tol_px: float = 0.1,
     max_rounds: int = 6,
 ) -> tuple[list[NDArray], list[NDArray], int | None] | None:
-    """:func:`_refine_axes` repeated until neither line moves by more than ``tol_px`` within
-    the outer ring, at most ``max_rounds`` times: the lines, their points and the index of a
-    line hidden under a stripe (``None``: both seen); ``None`` if not even the first round
-    measures them.
+    """``refit`` (:func:`_refine_axes` of the lines and the hidden one's index) repeated until
+    neither line moves by more than ``tol_px`` within the outer ring, at most ``max_rounds``
+    times: the lines, their points and the index of a line hidden under a stripe (``None``:
+    both seen); ``None`` if not even the first round measures them.
 
     Each round samples the diameter along the line it was given, so a line that came in
     degrees off (a Hough line through a small, steeply tilted target: 26 deg on one
@@ -327,9 +323,7 @@ def _settled_axes(
     r_out = _perimeter_px(conics[max(conics)], c) / (2 * np.pi)
     settled = None
     for _ in range(max_rounds):
-        res = _refine_axes(
-            coef, axis_lines, c, conics, radii, half_window, line_px, size, bright, hidden_axis
-        )
+        res = refit(axis_lines, hidden_axis)
         if res is None:
             break
         moved = max(_line_shift_px(a, b, c, r_out) for a, b in zip(axis_lines, res[0]))
