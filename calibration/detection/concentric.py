@@ -221,9 +221,9 @@ def _detect_with_kernel(
     # Coarse stage on a lightly smoothed image: noise and grain drop about threefold, a
     # printed line keeps most of its darkness.
     hidden = _bright_mask(img, kernel) > 0
-    d, bg = _darkness(cv2.GaussianBlur(img, (0, 0), 1.0), kernel, hidden)
+    d, bg, lit = _darkness(cv2.GaussianBlur(img, (0, 0), 1.0), kernel, hidden)
     # Darkness over its local noise threshold: > 1 where a printed line may be.
-    thr_map, used = _threshold_map(d, bg, 4 * kernel, hidden, floor[0] if floor else None)
+    thr_map, used = _threshold_map(d, bg, 4 * kernel, hidden, floor[0] if floor else None, lit)
     floor[:] = [used]
     z = d / thr_map
     thr = 1.0
@@ -286,7 +286,7 @@ def _detect_with_kernel(
     kernel2 = int(np.clip(4 * half_window + 3, 9, max(9, 0.8 * spacing_px)))
     bright = _bright_mask(img, kernel2)
     if kernel2 != kernel:
-        d, bg = _darkness(img, kernel2, bright > 0)
+        d, bg, _ = _darkness(img, kernel2, bright > 0)
     coef = ndimage.spline_filter(d, order=3)
 
     # -- sub-pixel rings

@@ -34,8 +34,9 @@ MAX_DARKNESS_FLOOR = 0.02
 
 def _darkness(
     img: NDArray, kernel_px: int, hidden: NDArray | None = None
-) -> tuple[NDArray, NDArray]:
-    """Darkness ``1 - I / background`` (>= 0) and the background, closing with ``kernel_px``.
+) -> tuple[NDArray, NDArray, float]:
+    """Darkness ``1 - I / background`` (>= 0), the background (closing with ``kernel_px``)
+    and the lit paper's level in it (:func:`_lit_level`).
 
     Where the background is far below the lit paper (unlit or dark surroundings) no printed
     line can be seen and the darkness is 0; the paper's level comes from this image
@@ -53,8 +54,9 @@ def _darkness(
         bg = cv2.morphologyEx(img32, cv2.MORPH_CLOSE, se)
     bg = np.maximum(bg, img32)
     d = 1.0 - img32 / np.maximum(bg, 1e-6)
-    d[bg < 0.3 * _lit_level(bg, hidden)] = 0.0
-    return np.clip(d, 0.0, 1.0).astype(np.float64), bg.astype(np.float64)
+    lit = _lit_level(bg, hidden)
+    d[bg < 0.3 * lit] = 0.0
+    return np.clip(d, 0.0, 1.0).astype(np.float64), bg.astype(np.float64), lit
 
 
 def _lit_level(bg: NDArray, hidden: NDArray | None = None) -> float:
@@ -157,6 +159,7 @@ def _threshold_map(
     tile_px: int,
     hidden: NDArray | None = None,
     floor: float | None = None,
+    lit: float | None = None,
 ) -> tuple[NDArray, float]:
     """Per-pixel darkness threshold: median + 6 MAD of ``d`` in tiles of the lit area.
 
@@ -170,7 +173,8 @@ def _threshold_map(
     MAD say nothing. ``None``: this map sets it, from the whole lit area's level (at the
     detector's first, widest closing; where even that is 0, the level of the darkness above
     0), kept between ``MIN_DARKNESS_STEP / lit level`` and ``MAX_DARKNESS_FLOOR`` (the lower
-    bound wins on dim paper).
+    bound wins on dim paper). ``lit``: the paper's level from :func:`_darkness` (``None``:
+    found again in ``bg``).
 
     Returns
     -------
@@ -178,7 +182,8 @@ def _threshold_map(
         The threshold map and the floor it used.
     """
     h, w = d.shape
-    lit = _lit_level(bg, hidden)
+    if lit is None:
+        lit = _lit_level(bg, hidden)
     live = _live_mask(bg, lit, hidden)
     level = _noise_threshold(d, live)
     if floor is None:

@@ -165,8 +165,8 @@ def test_the_first_scales_darkness_floor_holds_at_the_smaller_scales(monkeypatch
     calls = []
     real = concentric._threshold_map
 
-    def spy(d, bg, tile_px, hidden=None, floor=None):
-        out = real(d, bg, tile_px, hidden, floor)
+    def spy(d, bg, tile_px, hidden=None, floor=None, lit=None):
+        out = real(d, bg, tile_px, hidden, floor, lit)
         calls.append((floor, out[1]))
         return out
 

@@ -43,9 +43,9 @@ def test_the_lit_level_is_the_papers_not_a_laser_stripes() -> None:
     assert abs(_lit_level(bg, hidden) - 0.2) < 0.01
     img = bg.copy()
     img[100:103, 160:240] *= 0.6  # a printed line on the card
-    d, _ = _darkness(img, 9)
+    d, _, _ = _darkness(img, 9)
     assert d[101, 200] == 0.0  # taken for surroundings
-    d, _ = _darkness(img, 9, hidden)
+    d, _, _ = _darkness(img, 9, hidden)
     assert abs(d[101, 200] - 0.4) < 0.03
 
 
