@@ -36,7 +36,6 @@ import logging
 import cv2
 import numpy as np
 from numpy.typing import NDArray
-from scipy import ndimage
 
 from calibration.detection.concentric_axes import (
     _diameter_lines,
@@ -78,6 +77,7 @@ from calibration.detection.concentric_rings import (
     _relabel_by_ratios,
     _unit_line,
     pencil_tolerance_px,
+    spline_window,
 )
 from calibration.detection.conics import (
     fit_conic,
@@ -287,7 +287,9 @@ def _detect_with_kernel(
     bright = _bright_mask(img, kernel2)
     if kernel2 != kernel:
         d, bg, _ = _darkness(img, kernel2, bright > 0)
-    coef = ndimage.spline_filter(d, order=3)
+    # The spline over the part the profiles reach: a ring point moves by up to a search
+    # (3 half windows) when refined, and its profile spans a search and a window beyond it.
+    coef = spline_window(d, conics[max(conics)], c, 2 * (4 * half_window + 1) + 8)
 
     # -- sub-pixel rings
     axis_lines = [l1 / np.linalg.norm(l1[:2]), l2 / np.linalg.norm(l2[:2])]

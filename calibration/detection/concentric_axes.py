@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from calibration.detection.concentric_rings import (
+    SplineWindow,
     _conic_point_on_ray,
     _locate_centres,
     _perimeter_px,
@@ -189,7 +190,7 @@ def _normal_clear_of(conic: NDArray, points: NDArray, normal: NDArray, reach: fl
 
 
 def _refine_axes(
-    coef: NDArray,
+    spline: SplineWindow,
     axis_lines: list[NDArray],
     c: NDArray,
     conics: dict[int, NDArray],
@@ -254,7 +255,7 @@ def _refine_axes(
         if len(pts) >= 4:
             normals = np.tile(ln[:2], (len(pts), 1))
             off, contrast, good = _locate_centres(
-                coef, pts, normals, half_window, search, 0.125, bright
+                spline, pts, normals, half_window, search, 0.125, bright
             )
             med = np.median(contrast[good]) if good.any() else 0.0
             good &= contrast > 0.5 * med

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy import ndimage
 
 from calibration.detection.conics import (
     fit_conic,
@@ -22,9 +23,9 @@ from calibration.detection.conics import (
     pencil_member,
     sampson_distances,
 )
-from calibration.detection.ray_kernels import cubic_spline_at, line_centres
+from calibration.detection.ray_kernels import line_centres, spline_along, window_touches
 
-__all__ = ["ConcentricDetectorSettings"]
+__all__ = ["ConcentricDetectorSettings", "SplineWindow"]
 
 
 @dataclass(frozen=True)
@@ -48,8 +49,62 @@ class ConcentricDetectorSettings:
     """A ring needs edge points over at least this fraction of its directions."""
 
 
+@dataclass(frozen=True)
+class SplineWindow:
+    """Cubic-spline coefficients of the part of the darkness map the fine stage samples.
+
+    The prefilter runs over the whole of an image otherwise, though the profiles across the
+    rings and diameters only reach a little beyond the largest ring
+    (:func:`spline_window`).
+    """
+
+    coef: NDArray
+    """Shape (H', W'): :func:`scipy.ndimage.spline_filter` (order 3) of the window."""
+    origin_px: tuple[int, int]
+    """The window's first pixel ``(u, v)`` in the image."""
+
+
+#: Pixels kept between a profile's farthest sample and a window's edge inside the image: the
+#: cubic spline's prefilter decays as 0.268 per pixel, so there the coefficients are those of
+#: the whole image to 1e-17.
+SPLINE_WINDOW_GUARD_PX = 32
+
+
+def spline_window(darkness: NDArray, outer: NDArray, c: NDArray, reach_px: float) -> SplineWindow:
+    """The spline of ``darkness`` over the box of the conic ``outer`` (around ``c``) widened by
+    ``reach_px`` (the farthest a profile samples from a ring point) and a guard; the whole
+    image where the conic does not close around ``c``.
+
+    Parameters
+    ----------
+    darkness : ndarray, shape (H, W)
+    outer : ndarray, shape (3, 3)
+        The largest ring's conic.
+    c : ndarray, shape (2,)
+        A point inside it (the centre's image).
+    reach_px : float
+    """
+    h, w = darkness.shape
+    angles = np.linspace(0, 2 * np.pi, 256, endpoint=False)
+    dirs = np.column_stack([np.cos(angles), np.sin(angles)])
+    t = _conic_point_on_ray(outer, c, dirs)
+    u0, v0, u1, v1 = 0, 0, w, h
+    if np.all(np.isfinite(t)):
+        pts = c + t[:, None] * dirs
+        # (the 256 directions' points may miss the box's edge by a little: 1 % of the size)
+        grow = reach_px + SPLINE_WINDOW_GUARD_PX + 0.01 * float(np.max(t)) + 2.0
+        lo = np.floor(pts.min(axis=0) - grow).astype(int)
+        hi = np.ceil(pts.max(axis=0) + grow).astype(int) + 1
+        u0, v0 = max(int(lo[0]), 0), max(int(lo[1]), 0)
+        u1, v1 = min(int(hi[0]), w), min(int(hi[1]), h)
+        if u1 - u0 < 8 or v1 - v0 < 8:
+            u0, v0, u1, v1 = 0, 0, w, h
+    coef = ndimage.spline_filter(darkness[v0:v1, u0:u1], order=3)
+    return SplineWindow(coef, (u0, v0))
+
+
 def _locate_centres(
-    coef: NDArray,
+    spline: SplineWindow,
     points: NDArray,
     normals: NDArray,
     half_window: float,
@@ -59,30 +114,18 @@ def _locate_centres(
 ) -> tuple[NDArray, NDArray, NDArray]:
     """Sub-pixel centre of a dark line near each of ``points`` along its ``normals``.
 
-    ``coef`` is the cubic-spline prefiltered darkness image. Returns (offset along the normal,
+    ``spline`` is the cubic-spline prefiltered darkness map. Returns (offset along the normal,
     peak contrast above the local baseline, ok mask).
     """
     span = search + half_window + 1.0
     tau = np.arange(-span, span + step / 2, step)
-    u = points[:, 0:1] + normals[:, 0:1] * tau[None, :]
-    v = points[:, 1:2] + normals[:, 1:2] * tau[None, :]
-    prof = cubic_spline_at(coef, v, u)
+    prof = spline_along(spline.coef, points, normals, tau, spline.origin_px)
     c, contrast = line_centres(prof, tau, half_window, search)
     ok = np.isfinite(c) & (np.abs(c) < search) & (contrast > 0)
     if bright is not None:
         # A line whose window touches something brighter than the paper (laser stripe,
         # glare) is biased; beyond the window (where the search went) it does no harm.
-        # (only the samples within the window and a pixel of it are looked up)
-        h, w = bright.shape
-        reach = half_window + 1.0
-        j0 = np.clip(np.ceil((c - reach - tau[0]) / step).astype(np.intp), 0, len(tau) - 1)
-        j = np.minimum(j0[:, None] + np.arange(int(2 * reach / step) + 2), len(tau) - 1)
-        near = np.abs(tau[j] - c[:, None]) <= reach
-        rows = np.arange(len(points))[:, None]
-        iu, iv = np.rint(u[rows, j]).astype(np.intp), np.rint(v[rows, j]).astype(np.intp)
-        inside = (iu >= 0) & (iu < w) & (iv >= 0) & (iv < h)
-        hit = inside & bright[np.clip(iv, 0, h - 1), np.clip(iu, 0, w - 1)].astype(bool)
-        ok &= ~(hit & near).any(axis=1)
+        ok &= ~window_touches(bright, points, normals, tau, c, half_window + 1.0)
     return c, contrast, ok
 
 
@@ -211,7 +254,7 @@ def _pencil_centre(
 
 
 def _refine_ring(
-    coef: NDArray,
+    spline: SplineWindow,
     conic: NDArray,
     c: NDArray,
     dirs: NDArray,
@@ -246,7 +289,7 @@ def _refine_ring(
     normals = _conic_normals(conic, pts)
     search = max(1.0, min(0.3 * spacing_px, 3.0 * half_window))
     off, contrast, good = _locate_centres(
-        coef, pts, normals, half_window, search, s.ray_step_px, bright
+        spline, pts, normals, half_window, search, s.ray_step_px, bright
     )
     med = np.median(contrast[good]) if good.any() else 0.0
     good &= contrast > 0.5 * med

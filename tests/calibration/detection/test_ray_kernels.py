@@ -13,7 +13,9 @@ from calibration.detection.ray_kernels import (
     cubic_spline_at,
     label_rays,
     line_centres,
+    spline_along,
     tile_thresholds,
+    window_touches,
 )
 
 
@@ -143,6 +145,49 @@ def test_cubic_spline_at_refuses_mismatched_points():
         cubic_spline_at(np.zeros((4, 4)), np.zeros(3), np.zeros(4))
     with pytest.raises(ValueError, match="coef"):
         cubic_spline_at(np.zeros(4), np.zeros(3), np.zeros(3))
+
+
+def test_spline_along_gives_the_splines_values_at_the_lines_samples():
+    rng = np.random.default_rng(32)
+    coef = ndimage.spline_filter(rng.random((50, 70)), order=3)
+    points = rng.uniform(-5, 75, (300, 2))
+    angle = rng.uniform(0, 2 * np.pi, 300)
+    normals = np.column_stack([np.cos(angle), np.sin(angle)])
+    tau = np.arange(-6.0, 6.0 + 0.0625, 0.125)
+    u = points[:, 0:1] + normals[:, 0:1] * tau[None, :]
+    v = points[:, 1:2] + normals[:, 1:2] * tau[None, :]
+    got = spline_along(coef, points, normals, tau)
+    assert got.shape == (300, len(tau))
+    np.testing.assert_array_equal(got, cubic_spline_at(coef, v, u))  # 0 outside included
+    assert np.count_nonzero(got == 0.0) > 100 and np.count_nonzero(got) > 10_000
+    with pytest.raises(ValueError, match="expected shapes"):
+        spline_along(coef, points, normals[:-1], tau)
+
+
+def test_window_touches_finds_a_mask_pixel_within_the_window_only():
+    rng = np.random.default_rng(33)
+    h, w = 40, 60
+    mask = (rng.random((h, w)) > 0.97).astype(np.uint8)
+    points = rng.uniform(-3, 63, (500, 2))
+    angle = rng.uniform(0, 2 * np.pi, 500)
+    normals = np.column_stack([np.cos(angle), np.sin(angle)])
+    tau = np.arange(-8.0, 8.0 + 0.0625, 0.125)
+    centre = rng.uniform(-4, 4, 500)
+    centre[:5] = np.nan
+    reach = 2.5
+    # The plain way: every sample, nearest pixel, within the reach of the centre.
+    u = np.rint(points[:, 0:1] + normals[:, 0:1] * tau[None, :]).astype(int)
+    v = np.rint(points[:, 1:2] + normals[:, 1:2] * tau[None, :]).astype(int)
+    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    on = inside & (mask[np.clip(v, 0, h - 1), np.clip(u, 0, w - 1)] > 0)
+    near = np.abs(tau[None, :] - centre[:, None]) <= reach
+    want = (on & near).any(axis=1)
+    got = window_touches(mask, points, normals, tau, centre, reach)
+    np.testing.assert_array_equal(got, want)
+    assert 50 < got.sum() < 450  # neither all nor none
+    assert not got[:5].any()  # no centre: meets nothing
+    with pytest.raises(ValueError, match="expected shapes"):
+        window_touches(mask, points, normals, tau, centre[:-1], reach)
 
 
 def test_line_centres_find_a_drawn_line_and_its_depth():
