@@ -2,10 +2,16 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
-from calibration.detection.concentric_rays import _darkness, _lit_level, _threshold_map
+from calibration.detection.concentric_rays import (
+    _darkness,
+    _grey_morphology,
+    _lit_level,
+    _threshold_map,
+)
 
 
 def test_a_laser_stripe_filling_tiles_does_not_lower_their_threshold() -> None:
@@ -103,3 +109,28 @@ def test_a_first_scale_with_mostly_zero_darkness_learns_its_floor_from_the_rest(
     thr, floor = _threshold_map(d, bg, 48)
     assert 0.005 < floor < 0.02
     assert np.mean(d > thr) < 0.001
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64, np.uint8, np.uint16])
+def test_grey_morphology_is_opencvs_to_half_a_16_bit_level(dtype) -> None:
+    rng = np.random.default_rng(34)
+    scale = {np.uint8: 255, np.uint16: 65535}.get(dtype, 3.7)
+    img = (rng.random((90, 120)) * scale).astype(dtype)
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (9, 9))
+    box = cv2.getStructuringElement(cv2.MORPH_RECT, (15, 15))
+    got = _grey_morphology(img, (cv2.MORPH_CLOSE, disc), (cv2.MORPH_OPEN, box))
+    want = cv2.morphologyEx(
+        cv2.morphologyEx(img.astype(np.float32), cv2.MORPH_CLOSE, disc), cv2.MORPH_OPEN, box
+    )
+    assert got.dtype == np.float32 and got.shape == img.shape
+    if dtype in (np.uint8, np.uint16):
+        np.testing.assert_array_equal(got, want)  # integer images: exactly
+    else:
+        np.testing.assert_allclose(got, want, rtol=0, atol=0.51 * float(np.ptp(img)) / 65535)
+    assert np.ptp(got) > 0  # not flattened
+
+
+def test_grey_morphology_of_a_flat_image_is_the_image() -> None:
+    flat = np.full((20, 30), 0.25, np.float32)
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
+    np.testing.assert_array_equal(_grey_morphology(flat, (cv2.MORPH_CLOSE, disc)), flat)
