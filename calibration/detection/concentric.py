@@ -32,6 +32,7 @@ Steps 1-3 are in :mod:`calibration.detection.concentric_rays`, 4-5 in
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -97,6 +98,17 @@ log = logging.getLogger(__name__)
 KIND = "concentric_circles"
 
 
+@dataclass
+class _ScaleState:
+    """What one closing scale of :func:`detect_concentric` tells the next."""
+
+    progress: int = 0
+    """Stages the scale passed (lines, centre, coarse pencil, rings measured, tilt,
+    diameters): of several refusals the most telling is shown."""
+    floor: float | None = None
+    """The darkness threshold's floor (:func:`_threshold_map`), set by the first scale."""
+
+
 def detect_concentric(
     image: NDArray,
     target: ConcentricCirclesTarget,
@@ -132,14 +144,14 @@ def detect_concentric(
     first = max(9, min(h, w) // 40)
     kernels = sorted({first, max(5, first // 2), max(5, first // 4)}, reverse=True)
     refused, furthest = None, -1
-    floor: list[float] = []  # the darkness threshold's floor, set by the first scale
+    state = _ScaleState()
     for kernel in kernels:
-        progress = [0]
-        obs = _detect_with_kernel(img, target, s, kernel, size, progress, floor)
+        state.progress = 0
+        obs = _detect_with_kernel(img, target, s, kernel, size, state)
         if obs:
             return obs
-        if progress[0] > furthest:  # the reason of the scale that got furthest is reported
-            refused, furthest = obs, progress[0]
+        if state.progress > furthest:  # the reason of the scale that got furthest is reported
+            refused, furthest = obs, state.progress
     return refused  # type: ignore[return-value]
 
 
@@ -206,15 +218,12 @@ def _detect_with_kernel(
     s: ConcentricDetectorSettings,
     kernel: int,
     size: tuple[int, int],
-    progress: list[int],
-    floor: list[float],
+    state: _ScaleState,
 ) -> TargetObservation:
     """:func:`detect_concentric` with the coarse stage's closing kernel ``kernel`` px.
 
-    ``progress[0]`` is set to the number of stages passed (lines, centre, coarse pencil,
-    rings measured, tilt, diameters), so that of several refusals the most telling is shown.
-    ``floor``: the darkness threshold's floor (:func:`_threshold_map`), set by the first
-    scale (empty: this is the first).
+    Sets ``state.progress`` to the stages passed, and ``state.floor`` where this is the first
+    scale (it is ``None``).
     """
     h, w = img.shape
     radii = np.asarray(target.ring_radii_mm, dtype=np.float64)
@@ -223,8 +232,7 @@ def _detect_with_kernel(
     hidden = _bright_mask(img, kernel) > 0
     d, bg, lit = _darkness(cv2.GaussianBlur(img, (0, 0), 1.0), kernel, hidden)
     # Darkness over its local noise threshold: > 1 where a printed line may be.
-    thr_map, used = _threshold_map(d, bg, 4 * kernel, hidden, floor[0] if floor else None, lit)
-    floor[:] = [used]
+    thr_map, state.floor = _threshold_map(d, bg, 4 * kernel, hidden, state.floor, lit)
     z = d / thr_map
     thr = 1.0
     mask = (z > thr).astype(np.uint8) * 255
@@ -236,7 +244,7 @@ def _detect_with_kernel(
     if len(lines) < 2:
         return TargetObservation.failed("no pair of diameter lines found", size, KIND)
 
-    progress[0] = 1
+    state.progress = 1
     # -- candidate centres from pairs of long lines, scored by consistent ring rays
     best = None
     for i in range(len(lines)):
@@ -264,7 +272,7 @@ def _detect_with_kernel(
         return TargetObservation.failed(
             "no ring pencil found (no pair of lines with rings around their crossing)", size, KIND
         )
-    progress[0] = 2
+    state.progress = 2
     _, c, per_ring, (l1, l2), axis_angles = best
     # the chosen centre's rings from many more rays (the kernel makes them cheap)
     per_ring, _ = _label_rays(z_rays, c, radii, thr, axis_angles, n_rays=384)
@@ -275,7 +283,7 @@ def _detect_with_kernel(
         return TargetObservation.failed(pencil, size, KIND)
     conics, c = pencil
 
-    progress[0] = 3
+    state.progress = 3
     # -- line width in px estimate, for windows
     spacing_px = _min_spacing_px(conics, c)
     line_frac = target.line_width_mm / float(np.min(np.diff(radii)))
@@ -372,7 +380,7 @@ def _detect_with_kernel(
             )
         # (A ring the coarse ray labelling missed is not recovered: only measured rings count.)
 
-    progress[0] = 4
+    state.progress = 4
     ratio = min(_conic_axes_ratio(cn) for cn in conics.values())
     if ratio < np.cos(np.radians(s.max_tilt_deg)):
         return TargetObservation.failed(
@@ -382,7 +390,7 @@ def _detect_with_kernel(
             KIND,
         )
 
-    progress[0] = 5
+    state.progress = 5
     # -- centre O: intersection of the diameter lines, checked against the pencil centre
     x = intersect_lines(axis_lines[0], axis_lines[1])
     o_lines = x[:2] / x[2]
@@ -419,7 +427,7 @@ def _detect_with_kernel(
                 size,
                 KIND,
             )
-    progress[0] = 6
+    state.progress = 6
     labelled = _label_by_marker(
         img, bg, target, center, ends, conics, radii, axis_lines, line_dark, paper
     )

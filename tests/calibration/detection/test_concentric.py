@@ -149,8 +149,8 @@ def test_of_several_scales_the_refusal_that_got_furthest_is_reported(monkeypatch
     stages = iter([(1, "no ring pencil found: 1 rings fitted"), (5, "diameter line not printed"),
                    (2, "radius ratios disagree")])  # fmt: skip
 
-    def fake(img, target, s, kernel, size, progress, floor):
-        progress[0], reason = next(stages)
+    def fake(img, target, s, kernel, size, state):
+        state.progress, reason = next(stages)
         return TargetObservation.failed(reason, size, "concentric_circles")
 
     monkeypatch.setattr(concentric, "_detect_with_kernel", fake)
