@@ -297,7 +297,7 @@ def _detect_with_kernel(
         d, bg, _ = _darkness(img, kernel2, bright > 0)
     # The spline over the part the profiles reach: a ring point moves by up to a search
     # (3 half windows) when refined, and its profile spans a search and a window beyond it.
-    coef = spline_window(d, conics[max(conics)], c, 2 * (4 * half_window + 1) + 8)
+    spline = spline_window(d, list(conics.values()), c, 2 * (4 * half_window + 1) + 8)
 
     # -- sub-pixel rings
     axis_lines = [l1 / np.linalg.norm(l1[:2]), l2 / np.linalg.norm(l2[:2])]
@@ -311,7 +311,7 @@ def _detect_with_kernel(
         dirs = np.column_stack([np.cos(angles), np.sin(angles)])
         for k in sorted(conics):
             res = _refine_ring(
-                coef,
+                spline,
                 conics[k],
                 c,
                 dirs,
@@ -362,7 +362,7 @@ def _detect_with_kernel(
         c = c_new
         axis_res = _settled_axes(
             lambda lines, hidden, c=c, conics=conics: _refine_axes(
-                coef, lines, c, conics, radii, half_window, line_px, (w, h), bright, hidden
+                spline, lines, c, conics, radii, half_window, line_px, (w, h), bright, hidden
             ),
             axis_lines,
             c,

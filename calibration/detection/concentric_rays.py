@@ -60,7 +60,11 @@ def _grey_morphology(img: NDArray, *steps: tuple[int, NDArray]) -> NDArray:
     A grey closing or opening only picks values of the image, so it commutes with any
     increasing map of them: 8- and 16-bit images are processed as they are, float images
     through 16-bit levels spanning their range (OpenCV's 16-bit morphology is about twice as
-    fast as its float one; the values come back within half a level, 1/131070 of the range).
+    fast as its float one). A pixel whose level comes back unchanged keeps its own value (a
+    closing that leaves a pixel as it is leaves it exactly: its darkness stays 0); the others
+    come back within half a level, 1/131070 of the range, so every value is within one level
+    of the float morphology's. A range that float32 cannot split into levels (flat, not
+    finite, too narrow or too wide) is processed in float.
     """
     if img.dtype in (np.uint8, np.uint16):
         out = img
@@ -69,16 +73,27 @@ def _grey_morphology(img: NDArray, *steps: tuple[int, NDArray]) -> NDArray:
         return out.astype(np.float32)
     img32 = np.asarray(img, dtype=np.float32)
     lo, hi = float(np.min(img32)), float(np.max(img32))
-    if not (np.isfinite(lo) and np.isfinite(hi)) or hi <= lo:
-        out = img32  # flat (or not finite): float morphology, as it is
+    scale = (hi - lo) / 65535.0
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        usable = (
+            np.isfinite(np.float32(hi - lo))
+            and scale >= np.finfo(np.float32).tiny
+            and np.isfinite(np.float32(1.0 / scale))
+        )
+    if not usable:
+        out = img32
         for op, se in steps:
             out = cv2.morphologyEx(out, op, se)
         return out
-    scale = (hi - lo) / 65535.0
-    levels = np.rint((img32 - np.float32(lo)) * np.float32(1.0 / scale)).astype(np.uint16)
+    scaled = (img32 - np.float32(lo)) * np.float32(1.0 / scale)
+    own = np.rint(np.clip(scaled, 0.0, 65535.0, out=scaled), out=scaled).astype(np.uint16)
+    levels = own
     for op, se in steps:
         levels = cv2.morphologyEx(levels, op, se)
-    return levels.astype(np.float32) * np.float32(scale) + np.float32(lo)
+    out = levels.astype(np.float32) * np.float32(scale) + np.float32(lo)
+    same = levels == own
+    out[same] = img32[same]
+    return out
 
 
 def _lit_level(bg: NDArray, hidden: NDArray | None = None) -> float:

@@ -11,7 +11,7 @@ the same way between the rings, are in :mod:`calibration.detection.concentric_ax
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -49,19 +49,57 @@ class ConcentricDetectorSettings:
     """A ring needs edge points over at least this fraction of its directions."""
 
 
-@dataclass(frozen=True)
+@dataclass
 class SplineWindow:
     """Cubic-spline coefficients of the part of the darkness map the fine stage samples.
 
     The prefilter runs over the whole of an image otherwise, though the profiles across the
-    rings and diameters only reach a little beyond the largest ring
-    (:func:`spline_window`).
+    rings and diameters only reach a little beyond the rings (:func:`spline_window`). A profile
+    that comes nearer than :data:`SPLINE_WINDOW_GUARD_PX` to an edge of the window inside the
+    image is sampled on the whole map's spline instead (prefiltered once, when first needed):
+    the values are the whole map's either way.
     """
 
+    darkness: NDArray
+    """Shape (H, W): the whole darkness map."""
     coef: NDArray
     """Shape (H', W'): :func:`scipy.ndimage.spline_filter` (order 3) of the window."""
     origin_px: tuple[int, int]
     """The window's first pixel ``(u, v)`` in the image."""
+    whole: NDArray | None = field(default=None, repr=False)
+    """The whole map's coefficients, once a profile needed them."""
+
+    def covering(
+        self, points: NDArray, normals: NDArray, span_px: float
+    ) -> tuple[NDArray, tuple[int, int]]:
+        """Coefficients and their origin for the samples ``points + t normals``,
+        ``|t| <= span_px``: the window's where all of them keep the guard from its edges inside
+        the image, else the whole map's.
+
+        Parameters
+        ----------
+        points, normals : ndarray, shape (N, 2)
+        span_px : float
+        """
+        h, w = self.darkness.shape
+        hh, ww = self.coef.shape
+        u0, v0 = self.origin_px
+        g = SPLINE_WINDOW_GUARD_PX
+        with np.errstate(invalid="ignore"):
+            reach = span_px * np.abs(normals)
+            lo = np.nanmin(points - reach, axis=0) if len(points) else np.zeros(2)
+            hi = np.nanmax(points + reach, axis=0) if len(points) else np.zeros(2)
+        inside = (
+            (u0 == 0 or lo[0] >= u0 + g)
+            and (v0 == 0 or lo[1] >= v0 + g)
+            and (u0 + ww == w or hi[0] <= u0 + ww - 1 - g)
+            and (v0 + hh == h or hi[1] <= v0 + hh - 1 - g)
+        )
+        if inside:
+            return self.coef, self.origin_px
+        if self.whole is None:
+            self.whole = ndimage.spline_filter(self.darkness, order=3)
+        return self.whole, (0, 0)
 
 
 #: Pixels kept between a profile's farthest sample and a window's edge inside the image: the
@@ -70,28 +108,31 @@ class SplineWindow:
 SPLINE_WINDOW_GUARD_PX = 32
 
 
-def spline_window(darkness: NDArray, outer: NDArray, c: NDArray, reach_px: float) -> SplineWindow:
-    """The spline of ``darkness`` over the box of the conic ``outer`` (around ``c``) widened by
+def spline_window(
+    darkness: NDArray, conics: list[NDArray], c: NDArray, reach_px: float
+) -> SplineWindow:
+    """The spline of ``darkness`` over the box of the ring ``conics`` (around ``c``) widened by
     ``reach_px`` (the farthest a profile samples from a ring point) and a guard; the whole
-    image where the conic does not close around ``c``.
+    map where a conic does not close around ``c``.
 
     Parameters
     ----------
     darkness : ndarray, shape (H, W)
-    outer : ndarray, shape (3, 3)
-        The largest ring's conic.
+    conics : list of ndarray, shape (3, 3)
+        The rings' coarse conics (their labels may still be wrong: all of them).
     c : ndarray, shape (2,)
-        A point inside it (the centre's image).
+        A point inside them (the centre's image).
     reach_px : float
     """
     h, w = darkness.shape
     angles = np.linspace(0, 2 * np.pi, 256, endpoint=False)
     dirs = np.column_stack([np.cos(angles), np.sin(angles)])
-    t = _conic_point_on_ray(outer, c, dirs)
+    t = np.array([_conic_point_on_ray(conic, c, dirs) for conic in conics]).reshape(-1, 256)
     u0, v0, u1, v1 = 0, 0, w, h
-    if np.all(np.isfinite(t)):
-        pts = c + t[:, None] * dirs
-        # (the 256 directions' points may miss the box's edge by a little: 1 % of the size)
+    if t.size and np.all(np.isfinite(t)):
+        pts = c + t.reshape(-1, 1) * np.tile(dirs, (len(t), 1))
+        # (the 256 directions' points may miss the box's edge by a little: 1 % of the size;
+        # a profile that reaches further is sampled on the whole map, see SplineWindow)
         grow = reach_px + SPLINE_WINDOW_GUARD_PX + 0.01 * float(np.max(t)) + 2.0
         lo = np.floor(pts.min(axis=0) - grow).astype(int)
         hi = np.ceil(pts.max(axis=0) + grow).astype(int) + 1
@@ -100,7 +141,7 @@ def spline_window(darkness: NDArray, outer: NDArray, c: NDArray, reach_px: float
         if u1 - u0 < 8 or v1 - v0 < 8:
             u0, v0, u1, v1 = 0, 0, w, h
     coef = ndimage.spline_filter(darkness[v0:v1, u0:u1], order=3)
-    return SplineWindow(coef, (u0, v0))
+    return SplineWindow(darkness, coef, (u0, v0))
 
 
 def _locate_centres(
@@ -119,7 +160,8 @@ def _locate_centres(
     """
     span = search + half_window + 1.0
     tau = np.arange(-span, span + step / 2, step)
-    prof = spline_along(spline.coef, points, normals, tau, spline.origin_px)
+    coef, origin = spline.covering(points, normals, span)
+    prof = spline_along(coef, points, normals, tau, origin)
     c, contrast = line_centres(prof, tau, half_window, search)
     ok = np.isfinite(c) & (np.abs(c) < search) & (contrast > 0)
     if bright is not None:

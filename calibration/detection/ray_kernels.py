@@ -462,9 +462,11 @@ def _touches(mask, px, py, nx, ny, tau, centre, reach):  # pragma: no cover - co
             j = min(j0 + q, m - 1)
             if abs(tau[j] - centre[r]) > reach:
                 continue
-            iu = int(np.rint(px[r] + nx[r] * tau[j]))
-            iv = int(np.rint(py[r] + ny[r] * tau[j]))
-            if iu >= 0 and iu < w and iv >= 0 and iv < h and mask[iv, iu] != 0:
+            x = np.rint(px[r] + nx[r] * tau[j])
+            y = np.rint(py[r] + ny[r] * tau[j])
+            if not (x >= 0.0 and x < w and y >= 0.0 and y < h):  # (NaN too)
+                continue
+            if mask[int(y), int(x)] != 0:
                 out[r] = True
                 break
     return out

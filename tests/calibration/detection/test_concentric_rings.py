@@ -77,33 +77,45 @@ def test_a_ring_that_follows_something_else_over_part_of_its_length_is_cut_back(
     assert np.max(np.abs(sampson_distances(rings[3][1], true_pts))) > 2.0  # as it was
 
 
-def test_the_spline_window_gives_the_whole_images_values_around_the_ring() -> None:
+def test_the_spline_window_gives_the_whole_images_values_around_the_rings() -> None:
     rng = np.random.default_rng(35)
     d = rng.random((480, 640))
-    outer = _circle(90.0, centre=(300.0, 200.0))
+    c = np.array([300.0, 200.0])
+    # the largest ring's label need not be the highest: every conic counts
+    rings = [_circle(90.0, centre=(300.0, 200.0)), _circle(40.0, centre=(300.0, 200.0))]
     reach = 20.0
-    win = spline_window(d, outer, np.array([300.0, 200.0]), reach)
+    win = spline_window(d, rings, c, reach)
     u0, v0 = win.origin_px
     h, w = win.coef.shape
-    # the box holds the ring, the reach and the guard, and is far from the whole image
-    assert u0 <= 300 - 90 - reach - SPLINE_WINDOW_GUARD_PX and v0 <= 200 - 90 - reach - 32
-    assert u0 + w >= 300 + 90 + reach + SPLINE_WINDOW_GUARD_PX and v0 + h >= 200 + 90 + reach
+    g = SPLINE_WINDOW_GUARD_PX
+    # the box holds the rings, the reach and the guard, and is far from the whole image
+    assert u0 <= 300 - 90 - reach - g and v0 <= 200 - 90 - reach - g
+    assert u0 + w >= 300 + 90 + reach + g and v0 + h >= 200 + 90 + reach + g
     assert w * h < 0.4 * d.size
-    # profiles across the ring reaching ``reach`` out: the same values, to the last bit
+    whole = ndimage.spline_filter(d, order=3)
+    # profiles across the ring reaching ``reach`` out: the window's values, to the last bit
     angle = rng.uniform(0, 2 * np.pi, 400)
     normals = np.column_stack([np.cos(angle), np.sin(angle)])
-    points = np.array([300.0, 200.0]) + 90.0 * normals
+    points = c + 90.0 * normals
     tau = np.arange(-reach, reach + 0.0625, 0.125)
-    whole = spline_along(ndimage.spline_filter(d, order=3), points, normals, tau)
-    np.testing.assert_array_equal(spline_along(win.coef, points, normals, tau, (u0, v0)), whole)
+    coef, origin = win.covering(points, normals, reach)
+    assert coef is win.coef and win.whole is None
+    want = spline_along(whole, points, normals, tau)
+    np.testing.assert_array_equal(spline_along(coef, points, normals, tau, origin), want)
+    # ... and a profile reaching into the guard is sampled on the whole map's spline
+    far = c + 160.0 * normals
+    coef, origin = win.covering(far, normals, reach)
+    assert origin == (0, 0) and win.whole is not None
+    want = spline_along(whole, far, normals, tau)
+    np.testing.assert_array_equal(spline_along(coef, far, normals, tau, origin), want)
 
 
 def test_the_spline_window_is_clipped_to_the_image_or_is_all_of_it() -> None:
     d = np.random.default_rng(36).random((200, 300))
-    near_corner = spline_window(d, _circle(50.0, centre=(20.0, 30.0)), np.array([20.0, 30.0]), 5.0)
+    near_corner = spline_window(d, [_circle(50.0, centre=(20.0, 30.0))], np.array([20.0, 30.0]), 5)
     assert near_corner.origin_px == (0, 0)
     assert near_corner.coef.shape[0] < 200 and near_corner.coef.shape[1] < 300
     # a conic that does not close around the point (a hyperbola): the whole image
     hyperbola = np.array([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -100.0]])
-    whole = spline_window(d, hyperbola, np.array([150.0, 100.0]), 5.0)
+    whole = spline_window(d, [hyperbola], np.array([150.0, 100.0]), 5.0)
     assert whole.origin_px == (0, 0) and whole.coef.shape == d.shape

@@ -164,10 +164,11 @@ def test_spline_along_gives_the_splines_values_at_the_lines_samples():
         spline_along(coef, points, normals[:-1], tau)
 
 
-def test_window_touches_finds_a_mask_pixel_within_the_window_only():
+@pytest.mark.parametrize("dtype", [np.uint8, bool, np.float64])
+def test_window_touches_finds_a_mask_pixel_within_the_window_only(dtype):
     rng = np.random.default_rng(33)
     h, w = 40, 60
-    mask = (rng.random((h, w)) > 0.97).astype(np.uint8)
+    mask = (rng.random((h, w)) > 0.97).astype(dtype)
     points = rng.uniform(-3, 63, (500, 2))
     angle = rng.uniform(0, 2 * np.pi, 500)
     normals = np.column_stack([np.cos(angle), np.sin(angle)])
