@@ -2,7 +2,9 @@
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
+from calibration.detection import concentric, concentric_rings
 from calibration.detection.detect import detect_target
 from calibration.detection.observations import TargetObservation
 from calibration.symmetry import relabel
@@ -201,3 +203,22 @@ def test_target_free_views_are_refused():
 @pytest.mark.slow
 def test_larger_randomised_slice_never_mislabels():
     _check_slice(60, seed=8, min_rate=0.9)  # 46 of 50 (2026-11-25; 44 on 2026-11-24)
+
+
+@pytest.mark.parametrize(("seed", "view"), [(0, 21), (0, 47), (3, 117)])
+def test_the_fine_stages_spline_window_detects_as_the_whole_map_does(monkeypatch, seed, view):
+    # (a laser stripe beside a diameter, a small target, a diameter found 26 deg off)
+    rng = np.random.default_rng([seed, view, 1])
+    v = render_view(draw_conditions(rng, has_target=True), rng)
+    windowed = detect_target(v.image, v.spec)
+
+    def whole_map(darkness, conics, c, reach_px):
+        whole = ndimage.spline_filter(darkness, order=3)
+        return concentric_rings.SplineWindow(darkness, whole, (0, 0), whole)
+
+    monkeypatch.setattr(concentric, "spline_window", whole_map)
+    whole = detect_target(v.image, v.spec)
+    assert windowed and whole
+    np.testing.assert_array_equal(windowed.points_px, whole.points_px)
+    for a, b in zip(windowed.rings, whole.rings, strict=True):
+        np.testing.assert_array_equal(a.edge_points_px, b.edge_points_px)
