@@ -8,11 +8,11 @@ diameter lines and is skipped), fits the first ones to the 1-D projectivity
 centres are many (every crossing of two long lines, at several scales), so this loop was
 most of the detector's time.
 
-:func:`cubic_spline_at` samples a cubic-spline coefficient image at scattered points, as
-:func:`scipy.ndimage.map_coordinates` does (``order=3, prefilter=False``, ``mode="constant"``)
-to rounding, 4-5 times faster; :func:`spline_along` samples it along lines (the fine stage's
-profiles across the rings) without building their points, and :func:`window_touches` tells
-which of those profiles' windows meet a mask (a laser stripe, glare).
+:func:`spline_along` samples a cubic-spline coefficient image along lines (the fine stage's
+profiles across the rings), as :func:`scipy.ndimage.map_coordinates` does (``order=3,
+prefilter=False``, ``mode="constant"``) to rounding, without building the samples' points;
+:func:`window_touches` tells which of those profiles' windows meet a mask (a laser stripe,
+glare).
 
 :func:`line_centres` finds the centre of the dark line in each of those profiles: the
 centroid, over a window about it, of the darkness above the window ends' mean, iterated.
@@ -34,7 +34,6 @@ from scanner.core.jit import HAVE_NUMBA, njit
 
 __all__ = [
     "HAVE_NUMBA",
-    "cubic_spline_at",
     "label_rays",
     "line_centres",
     "spline_along",
@@ -254,14 +253,6 @@ def _spline_point(coef, y, x, cval):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _spline_at(coef, v, u, cval):  # pragma: no cover - compiled
-    out = np.empty(v.size)
-    for k in range(v.size):
-        out[k] = _spline_point(coef, v[k], u[k], cval)
-    return out
-
-
-@njit(cache=True, nogil=True)
 def _spline_along(coef, px, py, nx, ny, tau, u0, v0):  # pragma: no cover - compiled
     n = px.size
     m = tau.size
@@ -276,39 +267,6 @@ def _spline_along(coef, px, py, nx, ny, tau, u0, v0):  # pragma: no cover - comp
     return out
 
 
-def cubic_spline_at(coef: NDArray, v: NDArray, u: NDArray, cval: float = 0.0) -> NDArray:
-    """The cubic spline with coefficients ``coef`` at the points ``(u, v)``.
-
-    The same values as ``scipy.ndimage.map_coordinates(coef, [v, u], order=3,
-    prefilter=False, mode="constant", cval=cval)`` (to rounding): the coefficients mirrored
-    about the edge samples, ``cval`` outside ``0 <= v <= H - 1``, ``0 <= u <= W - 1``.
-
-    Parameters
-    ----------
-    coef : ndarray, shape (H, W)
-        Spline coefficients (:func:`scipy.ndimage.spline_filter` of an image, order 3).
-    v, u : ndarray, any shape (the same)
-        Row and column of each point, px.
-    cval : float
-        The value outside the image.
-
-    Returns
-    -------
-    ndarray, the shape of ``v``, float64
-    """
-    c = np.ascontiguousarray(coef, dtype=np.float64)
-    if c.ndim != 2:
-        raise ValueError(f"coef: expected shape (H, W), got {c.shape}")
-    v = np.asarray(v, dtype=np.float64)
-    u = np.asarray(u, dtype=np.float64)
-    if v.shape != u.shape:
-        raise ValueError(f"v, u: expected one shape, got {v.shape} and {u.shape}")
-    out = _spline_at(
-        c, np.ascontiguousarray(v).reshape(-1), np.ascontiguousarray(u).reshape(-1), float(cval)
-    )
-    return out.reshape(v.shape)
-
-
 def spline_along(
     coef: NDArray,
     points: NDArray,
@@ -319,7 +277,8 @@ def spline_along(
     """The cubic spline with coefficients ``coef`` along lines: profile ``r`` at
     ``points[r] + tau * normals[r]`` (0 outside the coefficients).
 
-    The values of :func:`cubic_spline_at` at those points, without their ``(N, M)`` arrays.
+    The values of :func:`scipy.ndimage.map_coordinates` (``order=3, prefilter=False``,
+    ``cval=0``) at those points, to rounding, without their ``(N, M)`` arrays.
     ``coef`` may be a window of an image whose first pixel is at ``origin_px`` ``(u, v)``
     (whole pixels): the points are in the image's pixels, and where the window's spline
     equals the image's, so do the values, to the last bit.

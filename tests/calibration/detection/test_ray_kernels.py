@@ -10,7 +10,6 @@ import pytest
 from scipy import ndimage
 
 from calibration.detection.ray_kernels import (
-    cubic_spline_at,
     label_rays,
     line_centres,
     spline_along,
@@ -124,7 +123,7 @@ def test_a_ray_ends_where_the_print_is_hidden_and_starts_where_it_leaves_it():
 
 
 @pytest.mark.parametrize("shape", [(60, 80), (5, 7), (1, 9)])
-def test_cubic_spline_at_gives_scipys_values_inside_at_the_edges_and_outside(shape):
+def test_spline_along_gives_scipys_values_inside_at_the_edges_and_outside(shape):
     rng = np.random.default_rng(31)
     coef = ndimage.spline_filter(rng.random(shape), order=3)
     h, w = shape
@@ -133,21 +132,15 @@ def test_cubic_spline_at_gives_scipys_values_inside_at_the_edges_and_outside(sha
     # The edges exactly, just inside and just outside, and NaN.
     v = np.concatenate([v, [0.0, h - 1.0, -1e-12, h - 1 + 1e-12, 0.5 * h, 0.5 * h, np.nan]])
     u = np.concatenate([u, [0.5 * w, 0.5 * w, 1.0, 1.0, 0.0, w - 1.0, 1.0]])
-    want = ndimage.map_coordinates(coef, [v, u], order=3, prefilter=False, cval=-2.0)
-    got = cubic_spline_at(coef, v.reshape(-1, 7), u.reshape(-1, 7), cval=-2.0)
-    assert got.shape == (len(v) // 7, 7)
-    np.testing.assert_allclose(got.reshape(-1), want, rtol=0, atol=1e-12)
-    assert np.count_nonzero(want != -2.0) > 1000 or h < 10  # not all outside
+    want = ndimage.map_coordinates(coef, [v, u], order=3, prefilter=False, cval=0.0)
+    # each point as a line of one sample, at the point itself
+    got = spline_along(coef, np.column_stack([u, v]), np.zeros((len(u), 2)), np.zeros(1))
+    assert got.shape == (len(v), 1)
+    np.testing.assert_allclose(got[:, 0], want, rtol=0, atol=1e-12)
+    assert np.count_nonzero(want != 0.0) > 1000 or h < 10  # not all outside
 
 
-def test_cubic_spline_at_refuses_mismatched_points():
-    with pytest.raises(ValueError, match="v, u"):
-        cubic_spline_at(np.zeros((4, 4)), np.zeros(3), np.zeros(4))
-    with pytest.raises(ValueError, match="coef"):
-        cubic_spline_at(np.zeros(4), np.zeros(3), np.zeros(3))
-
-
-def test_spline_along_gives_the_splines_values_at_the_lines_samples():
+def test_spline_along_samples_each_line_at_its_positions():
     rng = np.random.default_rng(32)
     coef = ndimage.spline_filter(rng.random((50, 70)), order=3)
     points = rng.uniform(-5, 75, (300, 2))
@@ -158,7 +151,8 @@ def test_spline_along_gives_the_splines_values_at_the_lines_samples():
     v = points[:, 1:2] + normals[:, 1:2] * tau[None, :]
     got = spline_along(coef, points, normals, tau)
     assert got.shape == (300, len(tau))
-    np.testing.assert_array_equal(got, cubic_spline_at(coef, v, u))  # 0 outside included
+    want = ndimage.map_coordinates(coef, [v, u], order=3, prefilter=False, cval=0.0)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)  # 0 outside included
     assert np.count_nonzero(got == 0.0) > 100 and np.count_nonzero(got) > 10_000
     with pytest.raises(ValueError, match="expected shapes"):
         spline_along(coef, points, normals[:-1], tau)
