@@ -107,6 +107,9 @@ class _ScaleState:
     diameters): of several refusals the most telling is shown."""
     floor: float | None = None
     """The darkness threshold's floor (:func:`_threshold_map`), set by the first scale."""
+    ring0_hidden: bool = False
+    """Rays may start at ring 1 (:func:`~calibration.detection.ray_kernels.label_rays`): the
+    second pass, for views every scale refused."""
 
 
 def detect_concentric(
@@ -145,13 +148,19 @@ def detect_concentric(
     kernels = sorted({first, max(5, first // 2), max(5, first // 4)}, reverse=True)
     refused, furthest = None, -1
     state = _ScaleState()
-    for kernel in kernels:
-        state.progress = 0
-        obs = _detect_with_kernel(img, target, s, kernel, size, state)
-        if obs:
-            return obs
-        if state.progress > furthest:  # the reason of the scale that got furthest is reported
-            refused, furthest = obs, state.progress
+    # On a small, steep target the innermost ring's image can merge with the diameters'
+    # crossing at O, and every ray then names ring 1 as ring 0. Rays starting at ring 1 are
+    # a second pass only: a ray's three crossings check such a labelling weakly, so a view
+    # the first pass measures is never exposed to it.
+    for ring0_hidden in (False, True):
+        state.ring0_hidden = ring0_hidden
+        for kernel in kernels:
+            state.progress = 0
+            obs = _detect_with_kernel(img, target, s, kernel, size, state)
+            if obs:
+                return obs
+            if state.progress > furthest:  # the reason of the scale that got furthest
+                refused, furthest = obs, state.progress
     return refused  # type: ignore[return-value]
 
 
@@ -262,10 +271,14 @@ def _detect_with_kernel(
                 continue
             axis_angles = [t1 + np.pi / 2, t1 - np.pi / 2, t2 + np.pi / 2, t2 - np.pi / 2]
             # a quarter of the rays first: most crossings of clutter lines stop here
-            _, quick = _label_rays(z_rays, c, radii, thr, axis_angles, n_rays=24)
+            _, quick = _label_rays(
+                z_rays, c, radii, thr, axis_angles, n_rays=24, ring0_hidden=state.ring0_hidden
+            )
             if quick < 2 or (best is not None and 4 * quick < 0.5 * best[0]):
                 continue
-            per_ring, good = _label_rays(z_rays, c, radii, thr, axis_angles)
+            per_ring, good = _label_rays(
+                z_rays, c, radii, thr, axis_angles, ring0_hidden=state.ring0_hidden
+            )
             if best is None or good > best[0]:
                 best = (good, c, per_ring, (l1, l2), axis_angles)
     if best is None or best[0] < 12:
@@ -275,7 +288,9 @@ def _detect_with_kernel(
     state.progress = 2
     _, c, per_ring, (l1, l2), axis_angles = best
     # the chosen centre's rings from many more rays (the kernel makes them cheap)
-    per_ring, _ = _label_rays(z_rays, c, radii, thr, axis_angles, n_rays=384)
+    per_ring, _ = _label_rays(
+        z_rays, c, radii, thr, axis_angles, n_rays=384, ring0_hidden=state.ring0_hidden
+    )
 
     # -- initial conics and the pencil centre
     pencil = _coarse_pencil(per_ring, radii, c, s.min_rings)

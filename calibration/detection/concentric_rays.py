@@ -318,13 +318,15 @@ def _label_rays(
     thr: float,
     axis_angles: list[float],
     n_rays: int = 96,
+    ring0_hidden: bool = False,
 ) -> tuple[list[list[tuple[float, NDArray]]], int]:
     """Ring crossings labelled by the 1-D projectivity along rays from ``c``.
 
     Returns per ring a list of (angle, point px) and the support of ``c``: over the rays
     whose crossings fit the projectivity, the crossings beyond the two that any fit of its
     two parameters takes (three crossings fit nearly any point near a target; a centre whose
-    rays cross every ring in order is the target's).
+    rays cross every ring in order is the target's). ``ring0_hidden``: see
+    :func:`~calibration.detection.ray_kernels.label_rays`.
     """
     angles = np.linspace(0, 2 * np.pi, n_rays, endpoint=False) + 0.013
     keep = np.ones(n_rays, bool)
@@ -332,12 +334,14 @@ def _label_rays(
         diff = np.abs((angles - a + np.pi) % (2 * np.pi) - np.pi)
         keep &= diff > np.radians(6)
     angles = angles[keep]
-    count, peaks, err = label_rays(d, c, angles, radii, thr)
-    last = peaks[np.arange(len(angles)), np.maximum(count - 1, 0)]
-    ok = (count >= 3) & (err <= FIT_TOL_PX + FIT_TOL_FRACTION * np.nan_to_num(last))
+    count, peaks, err = label_rays(
+        d, c, angles, radii, thr, FIT_TOL_PX, FIT_TOL_FRACTION, ring0_hidden
+    )
+    last = np.max(np.nan_to_num(peaks, nan=0.0), axis=1)  # the farthest labelled crossing
+    ok = (count >= 3) & (err <= FIT_TOL_PX + FIT_TOL_FRACTION * last)
     per_ring: list[list[tuple[float, NDArray]]] = [[] for _ in radii]
     for i in np.flatnonzero(ok):
         dirv = np.array([np.cos(angles[i]), np.sin(angles[i])])
-        for k in range(count[i]):
+        for k in np.flatnonzero(np.isfinite(peaks[i])):
             per_ring[k].append((float(angles[i]), c + peaks[i, k] * dirv))
     return per_ring, int(np.sum(count[ok] - 2))

@@ -43,12 +43,51 @@ __all__ = [
 
 
 @njit(cache=True, nogil=True)
-def _label(d, cx, cy, cos_a, sin_a, radii, thr):  # pragma: no cover - compiled
+def _fit_labels(radii, found, o, m):  # pragma: no cover - compiled
+    """Least squares of ``t = a r / (1 + b r)`` with ``found[:m]`` labelled as the rings
+    ``o .. o + m - 1``, through its normal equations: ``(a, b, largest residual)``, the
+    residual ``inf`` where the fit has no meaning."""
+    s11 = 0.0
+    s12 = 0.0
+    s22 = 0.0
+    b1 = 0.0
+    b2 = 0.0
+    for k in range(m):
+        r = radii[o + k]
+        tk = found[k]
+        s11 += r * r
+        s12 -= r * r * tk
+        s22 += r * r * tk * tk
+        b1 += r * tk
+        b2 -= r * tk * tk
+    det = s11 * s22 - s12 * s12
+    if det <= 1e-12 * s11 * s22:
+        return 0.0, 0.0, np.inf
+    a = (s22 * b1 - s12 * b2) / det
+    b = (s11 * b2 - s12 * b1) / det
+    if a <= 0:
+        return a, b, np.inf
+    worst = 0.0
+    for k in range(m):
+        den = 1.0 + b * radii[o + k]
+        if den <= 0.05:
+            return a, b, np.inf
+        res = abs(a * radii[o + k] / den - found[k])
+        if res > worst:
+            worst = res
+    return a, b, worst
+
+
+@njit(cache=True, nogil=True)
+def _label(
+    d, cx, cy, cos_a, sin_a, radii, thr, tol_px, tol_frac, ring0_hidden
+):  # pragma: no cover - compiled
     h, w = d.shape
     n_rays = cos_a.size
     k_max = radii.size
     n_samples = int(np.hypot(w, h)) + 1
     row = np.zeros(n_samples)
+    found = np.zeros(k_max)
     count = np.zeros(n_rays, np.int64)
     peaks = np.full((n_rays, k_max), np.nan)
     err = np.full(n_rays, np.inf)
@@ -89,6 +128,10 @@ def _label(d, cx, cy, cos_a, sin_a, radii, thr):  # pragma: no cover - compiled
         j = first
         while j < n and row[j] > thr:  # the run touching the start
             j += 1
+        # Blind up to here: a hidden start and the dark run touching the start (the centre's
+        # own crossing of the diameters, and with it the innermost ring where its image is
+        # too small to be told from them).
+        blind = 1.0 + j
         m = 0
         while j < n and m < k_max:
             if row[j] > thr:
@@ -103,55 +146,59 @@ def _label(d, cx, cy, cos_a, sin_a, radii, thr):  # pragma: no cover - compiled
                     curv = row[best - 1] - 2.0 * row[best] + row[best + 1]
                     if curv < 0:
                         off = 0.5 * (row[best - 1] - row[best + 1]) / curv
-                peaks[i, m] = 1.0 + best + off
+                found[m] = 1.0 + best + off
                 m += 1
             else:
                 j += 1
-        if first > 0 and m > 0 and 1.0 + first > 0.5 * peaks[i, 0]:
-            # the hidden start may hide the first ring: its labels are not to be trusted
-            m = 0
-            peaks[i, :] = np.nan
+        # the hidden start may hide the first ring: labels from ring 0 are not to be trusted
+        start_hides = first > 0 and m > 0 and 1.0 + first > 0.5 * found[0]
+        o = 0
+        worst = np.inf
+        if ring0_hidden and m >= 3:
+            # Ring 0 as the first crossing, or (ring 0 unseen in the blind start) ring 1: a
+            # ray is labelled only where exactly one of the two fits.
+            a, b, worst0 = _fit_labels(radii, found, 0, m)
+            fits0 = not start_hides and worst0 <= tol_px + tol_frac * found[m - 1]
+            m1 = min(m, k_max - 1)
+            fits1 = False
+            worst1 = np.inf
+            if m1 >= 3:
+                a, b, worst1 = _fit_labels(radii, found, 1, m1)
+                den = 1.0 + b * radii[0]
+                fits1 = (
+                    worst1 <= tol_px + tol_frac * found[m1 - 1]
+                    and den > 0.05
+                    and a * radii[0] / den <= blind + tol_px
+                )
+            if fits0 and fits1:
+                m = 0
+            elif fits1:
+                o, m, worst = 1, m1, worst1
+            elif start_hides:
+                m = 0
+            else:
+                worst = worst0
+        else:
+            if start_hides:
+                m = 0
+            if m >= 3:
+                a, b, worst = _fit_labels(radii, found, 0, m)
         count[i] = m
-        if m < 3:
-            continue
-        # least squares of [r, -r t] (a, b) = t through its normal equations
-        s11 = 0.0
-        s12 = 0.0
-        s22 = 0.0
-        b1 = 0.0
-        b2 = 0.0
         for k in range(m):
-            r = radii[k]
-            tk = peaks[i, k]
-            s11 += r * r
-            s12 -= r * r * tk
-            s22 += r * r * tk * tk
-            b1 += r * tk
-            b2 -= r * tk * tk
-        det = s11 * s22 - s12 * s12
-        if det <= 1e-12 * s11 * s22:
-            continue
-        a = (s22 * b1 - s12 * b2) / det
-        b = (s11 * b2 - s12 * b1) / det
-        if a <= 0:
-            continue
-        worst = 0.0
-        ok = True
-        for k in range(m):
-            den = 1.0 + b * radii[k]
-            if den <= 0.05:
-                ok = False
-                break
-            res = abs(a * radii[k] / den - peaks[i, k])
-            if res > worst:
-                worst = res
-        if ok:
-            err[i] = worst
+            peaks[i, o + k] = found[k]
+        err[i] = worst
     return count, peaks, err
 
 
 def label_rays(
-    darkness: NDArray, centre_px: NDArray, angles: NDArray, radii: NDArray, thr: float
+    darkness: NDArray,
+    centre_px: NDArray,
+    angles: NDArray,
+    radii: NDArray,
+    thr: float,
+    tol_px: float = 1.5,
+    tol_frac: float = 0.01,
+    ring0_hidden: bool = False,
 ) -> tuple[NDArray, NDArray, NDArray]:
     """Each ray's first crossings of dark lines and how well they fit the radii's projectivity.
 
@@ -169,15 +216,25 @@ def label_rays(
         The spec's ring radii, increasing, mm.
     thr : float
         Darkness above which a sample may be on a printed line.
+    tol_px, tol_frac : float
+        A labelling fits where its largest residual is at most ``tol_px + tol_frac * t``,
+        ``t`` the farthest crossing's distance (used with ``ring0_hidden`` only; otherwise
+        the caller judges ``err_px``).
+    ring0_hidden : bool
+        Also label a ray's first crossing as ring 1 where the fit puts ring 0 inside the
+        ray's blind start (the dark run from the centre, or a hidden start): on a small,
+        steep target the innermost ring's image merges with the diameters' crossing at O.
+        A ray is then labelled only where exactly one of the two labellings fits.
 
     Returns
     -------
     count : ndarray, shape (R,), int
-        Crossings found on each ray, at most ``K``.
+        Crossings labelled on each ray, at most ``K``.
     peaks_px : ndarray, shape (R, K)
-        Their distances from the centre (NaN beyond ``count``).
+        Their distances from the centre, column ``k`` for ring ``k`` (NaN for rings not
+        crossed: beyond the last crossing, and ring 0 where it is hidden).
     err_px : ndarray, shape (R,)
-        Largest residual of the fit of ``t = a r / (1 + b r)`` to the first ``count`` radii
+        Largest residual of the fit of ``t = a r / (1 + b r)`` to the labelled crossings
         (``inf`` for fewer than 3 crossings or a fit without meaning).
     """
     d = np.ascontiguousarray(darkness, dtype=np.float64)
@@ -192,6 +249,9 @@ def label_rays(
         np.sin(angles),
         np.ascontiguousarray(radii, dtype=np.float64),
         float(thr),
+        float(tol_px),
+        float(tol_frac),
+        bool(ring0_hidden),
     )
 
 

@@ -145,11 +145,15 @@ def test_no_target_gives_a_reason():
 
 
 def test_of_several_scales_the_refusal_that_got_furthest_is_reported(monkeypatch):
-    # each closing kernel fails at another stage: the user sees the most telling reason
+    # each closing kernel fails at another stage, in both passes (the second with rays that
+    # may start at ring 1): the user sees the most telling reason
+    # (two closing kernels for a 400 px image)
     stages = iter([(1, "no ring pencil found: 1 rings fitted"), (5, "diameter line not printed"),
-                   (2, "radius ratios disagree")])  # fmt: skip
+                   (3, "too oblique"), (5, "second pass")])  # fmt: skip
+    passes = []
 
     def fake(img, target, s, kernel, size, state):
+        passes.append(state.ring0_hidden)
         state.progress, reason = next(stages)
         return TargetObservation.failed(reason, size, "concentric_circles")
 
@@ -157,6 +161,7 @@ def test_of_several_scales_the_refusal_that_got_furthest_is_reported(monkeypatch
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert not obs
     assert obs.reason == "diameter line not printed"
+    assert passes == [False, False, True, True]
 
 
 def test_the_first_scales_darkness_floor_holds_at_the_smaller_scales(monkeypatch):
@@ -174,7 +179,7 @@ def test_the_first_scales_darkness_floor_holds_at_the_smaller_scales(monkeypatch
     rng = np.random.default_rng(2)
     noise = np.clip(rng.normal(150, 3, (480, 640)), 0, 255).astype(np.uint8)
     assert not detect_concentric(noise, demo_target())
-    assert len(calls) == 3  # three closing scales
+    assert len(calls) == 6  # three closing scales, two passes
     assert calls[0][0] is None
     assert all(given == calls[0][1] and used == given for given, used in calls[1:])
 

@@ -122,6 +122,49 @@ def test_a_ray_ends_where_the_print_is_hidden_and_starts_where_it_leaves_it():
     assert np.all(count_s == 0)
 
 
+def test_a_ring_merged_with_the_centre_is_skipped_only_when_asked():
+    # A small, steep target: the innermost ring's image (4.4 px) merges with the diameters'
+    # crossing at O into one dark run from the centre. By default the first crossing seen is
+    # named ring 0 and the fit refuses the ray; with ``ring0_hidden`` the crossings are
+    # rings 1-3 and column 0 stays empty.
+    rng = np.random.default_rng(6)
+    radii = np.array([2.0, 10.0, 20.0, 30.0])
+    d = np.zeros((300, 400))
+    cv2.circle(d, (190, 160), 5, 1.0, -1)
+    for r in 2.2 * radii[1:]:
+        cv2.circle(d, (190, 160), int(r + 0.5), 1.0, 2)
+    d = np.maximum(cv2.GaussianBlur(d, (0, 0), 1.0) + rng.normal(0.0, 0.05, d.shape), 0.0)
+    centre = np.array([190.0, 160.0])
+    angles = np.linspace(0, 2 * np.pi, 48, endpoint=False) + 0.013
+    count, _, err = label_rays(d, centre, angles, radii, 0.3)
+    assert np.all((count < 3) | (err > 1.5 + 0.01 * 66.0))
+    count, peaks, err = label_rays(d, centre, angles, radii, 0.3, ring0_hidden=True)
+    labelled = (count == 3) & (err < 1.5)
+    assert labelled.sum() > 40
+    assert np.all(np.isnan(peaks[labelled, 0]))
+    np.testing.assert_allclose(
+        peaks[labelled, 1:], np.tile([22.0, 44.0, 66.0], (labelled.sum(), 1)), atol=1.0
+    )
+
+
+def test_asking_for_a_hidden_ring_0_leaves_rays_that_see_it_as_they_were():
+    rng = np.random.default_rng(7)
+    radii = np.array([10.0, 20.0, 30.0, 40.0, 55.0])
+    centre = np.array([190.0, 160.0])
+    d = _rings_image(rng, 2.2 * radii, (190, 160))
+    angles = np.linspace(0, 2 * np.pi, 96, endpoint=False) + 0.013
+    count, peaks, err = label_rays(d, centre, angles, radii, 0.3)
+    last = np.max(np.nan_to_num(peaks), axis=1)
+    fits = (count >= 3) & (err <= 1.5 + 0.01 * last)
+    assert fits.sum() > 48
+    count_h, peaks_h, err_h = label_rays(d, centre, angles, radii, 0.3, ring0_hidden=True)
+    np.testing.assert_array_equal(count_h[fits], count[fits])
+    np.testing.assert_array_equal(peaks_h[fits], peaks[fits])
+    np.testing.assert_array_equal(err_h[fits], err[fits])
+    # no ray is labelled from ring 1 here: ring 0 is seen 22 px out, beyond the blind start
+    assert not np.any(np.isnan(peaks_h[:, 0]) & np.isfinite(peaks_h[:, 1]))
+
+
 @pytest.mark.parametrize("shape", [(60, 80), (5, 7), (1, 9)])
 def test_spline_along_gives_scipys_values_inside_at_the_edges_and_outside(shape):
     rng = np.random.default_rng(31)
