@@ -32,7 +32,7 @@ Steps 1-3 are in :mod:`calibration.detection.concentric_rays`, 4-5 in
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -98,9 +98,24 @@ log = logging.getLogger(__name__)
 KIND = "concentric_circles"
 
 
+@dataclass(frozen=True)
+class _CoarseMaps:
+    """The coarse stage's maps at one closing scale (all ``(H, W)`` float64 but ``lines``)."""
+
+    d: NDArray
+    """Darkness of the lightly smoothed image (:func:`_darkness`)."""
+    bg: NDArray
+    """Its background (the grey closing)."""
+    z_rays: NDArray
+    """Darkness over its local threshold; -1 where the print is hidden (stripe, glare)."""
+    lines: list[tuple[float, float]]
+    """The strongest long lines of ``z_rays > 1`` (Hough ``(rho, theta)``)."""
+
+
 @dataclass
 class _ScaleState:
-    """What one closing scale of :func:`detect_concentric` tells the next."""
+    """What one closing scale of :func:`detect_concentric` tells the next, and the first pass
+    over the scales the second."""
 
     progress: int = 0
     """Stages the scale passed (lines, centre, coarse pencil, rings measured, tilt,
@@ -110,6 +125,9 @@ class _ScaleState:
     ring0_hidden: bool = False
     """Rays may start at ring 1 (:func:`~calibration.detection.ray_kernels.label_rays`): the
     second pass, for views every scale refused."""
+    coarse: dict[int, _CoarseMaps] = field(default_factory=dict)
+    """The coarse maps of each scale (closing kernel, px) the first pass made: the second
+    pass labels other rays on the same maps."""
 
 
 def detect_concentric(
@@ -160,6 +178,10 @@ def detect_concentric(
             if obs:
                 return obs
             if state.progress > furthest:  # the reason of the scale that got furthest
+                if ring0_hidden:
+                    obs = TargetObservation.failed(
+                        f"{obs.reason} (rays labelled from ring 1)", size, KIND
+                    )
                 refused, furthest = obs, state.progress
     return refused  # type: ignore[return-value]
 
@@ -221,6 +243,28 @@ def _trimmed_conic(points: NDArray) -> NDArray | None:
     return conic
 
 
+def _coarse_maps(img: NDArray, kernel: int, state: _ScaleState) -> _CoarseMaps:
+    """The coarse stage's maps with the closing kernel ``kernel`` px; sets ``state.floor``
+    where it is ``None`` (the first scale)."""
+    h, w = img.shape
+    # Coarse stage on a lightly smoothed image: noise and grain drop about threefold, a
+    # printed line keeps most of its darkness.
+    hidden = _bright_mask(img, kernel) > 0
+    d, bg, lit = _darkness(cv2.GaussianBlur(img, (0, 0), 1.0), kernel, hidden)
+    # Darkness over its local noise threshold: > 1 where a printed line may be.
+    thr_map, state.floor = _threshold_map(d, bg, 4 * kernel, hidden, state.floor, lit)
+    z = d / thr_map
+    mask = (z > 1.0).astype(np.uint8) * 255
+    # Rays stop where the print is hidden (laser stripe, glare): see label_rays.
+    z_rays = np.where(hidden, -1.0, z)
+    # Clutter's long lines can outvote a small target's diameters: a generous number of the
+    # strongest lines is tried (a crossing without rings around it costs little).
+    lines = _hough_lines(mask, min_votes=int(0.08 * min(h, w)), max_lines=16)
+    for a in (d, bg, z_rays):
+        a.flags.writeable = False  # shared by both passes
+    return _CoarseMaps(d, bg, z_rays, lines)
+
+
 def _detect_with_kernel(
     img: NDArray,
     target: ConcentricCirclesTarget,
@@ -236,20 +280,11 @@ def _detect_with_kernel(
     """
     h, w = img.shape
     radii = np.asarray(target.ring_radii_mm, dtype=np.float64)
-    # Coarse stage on a lightly smoothed image: noise and grain drop about threefold, a
-    # printed line keeps most of its darkness.
-    hidden = _bright_mask(img, kernel) > 0
-    d, bg, lit = _darkness(cv2.GaussianBlur(img, (0, 0), 1.0), kernel, hidden)
-    # Darkness over its local noise threshold: > 1 where a printed line may be.
-    thr_map, state.floor = _threshold_map(d, bg, 4 * kernel, hidden, state.floor, lit)
-    z = d / thr_map
+    if kernel not in state.coarse:
+        state.coarse[kernel] = _coarse_maps(img, kernel, state)
+    maps = state.coarse[kernel]
+    d, bg, z_rays, lines = maps.d, maps.bg, maps.z_rays, maps.lines
     thr = 1.0
-    mask = (z > thr).astype(np.uint8) * 255
-    # Rays stop where the print is hidden (laser stripe, glare): see label_rays.
-    z_rays = np.where(hidden, -1.0, z)
-    # Clutter's long lines can outvote a small target's diameters: a generous number of the
-    # strongest lines is tried (a crossing without rings around it costs little).
-    lines = _hough_lines(mask, min_votes=int(0.08 * min(h, w)), max_lines=16)
     if len(lines) < 2:
         return TargetObservation.failed("no pair of diameter lines found", size, KIND)
 

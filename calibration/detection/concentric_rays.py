@@ -165,7 +165,7 @@ def _bright_mask(img: NDArray, kernel_px: int) -> NDArray:
     weak = (above > 2.0 * noise) | core
     n, labels = cv2.connectedComponents(weak.astype(np.uint8), connectivity=8)
     keep = np.zeros(n, dtype=bool)
-    keep[np.unique(labels[core])] = True
+    keep[labels[core]] = True
     keep[0] = False
     bright = keep[labels]
     bright = cv2.dilate(bright.astype(np.uint8), np.ones((3, 3), np.uint8))
@@ -292,7 +292,7 @@ def _sample(img: NDArray, u: NDArray, v: NDArray) -> NDArray:
     u = np.asarray(u, dtype=np.float64)
     v = np.asarray(v, dtype=np.float64)
     h, w = img.shape
-    src = img if img.dtype == np.float32 else img.astype(np.float32)
+    src = img if img.dtype in (np.float32, np.float64) else img.astype(np.float32)
     n, cols = u.size, 1024
     rows = max(1, -(-n // cols))
     map_u = np.full(rows * cols, -10.0, np.float32)

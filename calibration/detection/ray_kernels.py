@@ -2,11 +2,12 @@
 
 :func:`label_rays` samples the darkness map along all rays from a candidate centre
 (bilinear, every pixel, each ray only as far as its crossings go), takes the maxima of the runs
-above the threshold (to sub-pixel, the vertex of a parabola through three samples) (a run touching the ray's start is the centre's own crossing of the
-diameter lines and is skipped), fits the first ones to the 1-D projectivity
-``t = a r / (1 + b r)`` of the known radii and gives the fit's largest residual. Candidate
-centres are many (every crossing of two long lines, at several scales), so this loop was
-most of the detector's time.
+above the threshold (to sub-pixel, the vertex of a parabola through three samples; a run
+touching the ray's start is the centre's own crossing of the diameter lines and is skipped),
+fits the first ones to the 1-D projectivity ``t = a r / (1 + b r)`` of the known radii and
+gives the fit's largest residual; on request it may label them from ring 1 instead, where
+ring 0's image is lost in that run at the start. Candidate centres are many (every crossing
+of two long lines, at several scales), so this loop was most of the detector's time.
 
 :func:`spline_along` samples a cubic-spline coefficient image along lines (the fine stage's
 profiles across the rings), as :func:`scipy.ndimage.map_coordinates` does (``order=3,
@@ -132,6 +133,7 @@ def _label(
         # own crossing of the diameters, and with it the innermost ring where its image is
         # too small to be told from them).
         blind = 1.0 + j
+        j_blind = j
         m = 0
         while j < n and m < k_max:
             if row[j] > thr:
@@ -155,14 +157,18 @@ def _label(
         o = 0
         worst = np.inf
         if ring0_hidden and m >= 3:
-            # Ring 0 as the first crossing, or (ring 0 unseen in the blind start) ring 1: a
-            # ray is labelled only where exactly one of the two fits.
+            # Ring 0 as the first crossing, or (ring 0 unseen in the ray's blind start) ring
+            # 1: a ray is labelled only where exactly one of the two fits. (A hidden start
+            # that may hide the first ring forbids the first, but a fit of it still makes the
+            # second ambiguous.)
             a, b, worst0 = _fit_labels(radii, found, 0, m)
-            fits0 = not start_hides and worst0 <= tol_px + tol_frac * found[m - 1]
+            fits0 = worst0 <= tol_px + tol_frac * found[m - 1]
+            # (with all K rings crossed, the K-th crossing has no ring beyond ring 1's
+            # labelling: that fit takes the first K - 1)
             m1 = min(m, k_max - 1)
             fits1 = False
             worst1 = np.inf
-            if m1 >= 3:
+            if m1 >= 3 and j_blind > 0:  # a blind start to hide ring 0 in
                 a, b, worst1 = _fit_labels(radii, found, 1, m1)
                 den = 1.0 + b * radii[0]
                 fits1 = (
@@ -177,7 +183,7 @@ def _label(
             elif start_hides:
                 m = 0
             else:
-                worst = worst0
+                worst = worst0  # fitting or not: the caller judges it
         else:
             if start_hides:
                 m = 0
@@ -224,12 +230,14 @@ def label_rays(
         Also label a ray's first crossing as ring 1 where the fit puts ring 0 inside the
         ray's blind start (the dark run from the centre, or a hidden start): on a small,
         steep target the innermost ring's image merges with the diameters' crossing at O.
-        A ray is then labelled only where exactly one of the two labellings fits.
+        A ray is then labelled only where exactly one of the two labellings fits (a hidden
+        start that may hide the first ring forbids labelling from ring 0, but a fit from
+        ring 0 still refuses the ray as ambiguous).
 
     Returns
     -------
     count : ndarray, shape (R,), int
-        Crossings labelled on each ray, at most ``K``.
+        Crossings labelled on each ray, at most ``K`` (``K - 1`` from ring 1).
     peaks_px : ndarray, shape (R, K)
         Their distances from the centre, column ``k`` for ring ``k`` (NaN for rings not
         crossed: beyond the last crossing, and ring 0 where it is hidden).

@@ -149,7 +149,7 @@ def test_of_several_scales_the_refusal_that_got_furthest_is_reported(monkeypatch
     # may start at ring 1): the user sees the most telling reason
     # (two closing kernels for a 400 px image)
     stages = iter([(1, "no ring pencil found: 1 rings fitted"), (5, "diameter line not printed"),
-                   (3, "too oblique"), (5, "second pass")])  # fmt: skip
+                   (3, "too oblique"), (5, "as far, second")])  # fmt: skip
     passes = []
 
     def fake(img, target, s, kernel, size, state):
@@ -162,6 +162,10 @@ def test_of_several_scales_the_refusal_that_got_furthest_is_reported(monkeypatch
     assert not obs
     assert obs.reason == "diameter line not printed"
     assert passes == [False, False, True, True]
+    # a reason of the second pass that got further says where it comes from
+    stages = iter([(1, "first"), (2, "first, too"), (3, "second"), (6, "marker not found")])
+    obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
+    assert obs.reason == "marker not found (rays labelled from ring 1)"
 
 
 def test_the_first_scales_darkness_floor_holds_at_the_smaller_scales(monkeypatch):
@@ -179,7 +183,7 @@ def test_the_first_scales_darkness_floor_holds_at_the_smaller_scales(monkeypatch
     rng = np.random.default_rng(2)
     noise = np.clip(rng.normal(150, 3, (480, 640)), 0, 255).astype(np.uint8)
     assert not detect_concentric(noise, demo_target())
-    assert len(calls) == 6  # three closing scales, two passes
+    assert len(calls) == 3  # three closing scales (the second pass reuses their maps)
     assert calls[0][0] is None
     assert all(given == calls[0][1] and used == given for given, used in calls[1:])
 

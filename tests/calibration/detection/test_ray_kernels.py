@@ -147,6 +147,31 @@ def test_a_ring_merged_with_the_centre_is_skipped_only_when_asked():
     )
 
 
+def test_a_hidden_start_does_not_let_a_ray_that_fits_from_ring_0_be_labelled_from_ring_1():
+    # A stripe over the centre hides the rays' first 9 px; the crossings at 16, 32, 48 px fit
+    # rings 0-2 exactly, and rings 1-3 within the tolerance with ring 0 under the stripe.
+    # Which one is true cannot be told: the ray is not labelled (it was, from ring 1, in a
+    # first version of the ring-1 labelling).
+    rng = np.random.default_rng(8)
+    radii = np.array([10.0, 20.0, 30.0, 40.0, 55.0])
+    d = np.zeros((300, 400))
+    for r in (16, 32, 48):
+        cv2.circle(d, (190, 160), r, 1.0, 2)
+    d = np.maximum(cv2.GaussianBlur(d, (0, 0), 1.0) + rng.normal(0.0, 0.02, d.shape), 0.0)
+    cv2.circle(d, (190, 160), 9, -1.0, -1)
+    centre = np.array([190.0, 160.0])
+    angles = np.linspace(0, 2 * np.pi, 48, endpoint=False) + 0.013
+    count, _, err = label_rays(d, centre, angles, radii, 0.3)
+    assert np.all(count == 0)  # the hidden start may hide ring 0
+    count, _, _ = label_rays(d, centre, angles, radii, 0.3, ring0_hidden=True)
+    assert np.all(count == 0)
+    # with the centre in view the same crossings are rings 0-2
+    d[d < 0] = 0.0
+    count, peaks, err = label_rays(d, centre, angles, radii, 0.3)
+    assert np.all(count == 3) and np.all(err < 1.0)
+    np.testing.assert_allclose(peaks[:, :3], np.tile([16.0, 32.0, 48.0], (48, 1)), atol=1.0)
+
+
 def test_asking_for_a_hidden_ring_0_leaves_rays_that_see_it_as_they_were():
     rng = np.random.default_rng(7)
     radii = np.array([10.0, 20.0, 30.0, 40.0, 55.0])
