@@ -32,7 +32,7 @@ Steps 1-3 are in :mod:`calibration.detection.concentric_rays`, 4-5 in
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -100,14 +100,13 @@ KIND = "concentric_circles"
 
 @dataclass(frozen=True)
 class _CoarseMaps:
-    """The coarse stage's maps at one closing scale (all ``(H, W)`` float64 but ``lines``)."""
+    """What the coarse stage's rays need at one closing scale: kept for the second pass (the
+    darkness and background, needed only by a fine stage at this scale, are not kept: a
+    float64 map of a 12 MP image is 100 MB)."""
 
-    d: NDArray
-    """Darkness of the lightly smoothed image (:func:`_darkness`)."""
-    bg: NDArray
-    """Its background (the grey closing)."""
     z_rays: NDArray
-    """Darkness over its local threshold; -1 where the print is hidden (stripe, glare)."""
+    """``(H, W)`` float64: darkness over its local threshold; -1 where the print is hidden
+    (stripe, glare)."""
     lines: list[tuple[float, float]]
     """The strongest long lines of ``z_rays > 1`` (Hough ``(rho, theta)``)."""
 
@@ -179,9 +178,7 @@ def detect_concentric(
                 return obs
             if state.progress > furthest:  # the reason of the scale that got furthest
                 if ring0_hidden:
-                    obs = TargetObservation.failed(
-                        f"{obs.reason} (rays labelled from ring 1)", size, KIND
-                    )
+                    obs = replace(obs, reason=f"{obs.reason} (rays labelled from ring 1)")
                 refused, furthest = obs, state.progress
     return refused  # type: ignore[return-value]
 
@@ -243,14 +240,23 @@ def _trimmed_conic(points: NDArray) -> NDArray | None:
     return conic
 
 
-def _coarse_maps(img: NDArray, kernel: int, state: _ScaleState) -> _CoarseMaps:
-    """The coarse stage's maps with the closing kernel ``kernel`` px; sets ``state.floor``
-    where it is ``None`` (the first scale)."""
-    h, w = img.shape
+def _coarse_darkness(img: NDArray, kernel: int) -> tuple[NDArray, NDArray, float, NDArray]:
+    """The coarse stage's darkness, background, lit paper level and hidden (bright) pixels
+    with the closing kernel ``kernel`` px."""
     # Coarse stage on a lightly smoothed image: noise and grain drop about threefold, a
     # printed line keeps most of its darkness.
     hidden = _bright_mask(img, kernel) > 0
     d, bg, lit = _darkness(cv2.GaussianBlur(img, (0, 0), 1.0), kernel, hidden)
+    return d, bg, lit, hidden
+
+
+def _coarse_maps(
+    img: NDArray, kernel: int, state: _ScaleState
+) -> tuple[_CoarseMaps, NDArray, NDArray]:
+    """The coarse stage's maps with the closing kernel ``kernel`` px, its darkness and
+    background; sets ``state.floor`` where it is ``None`` (the first scale)."""
+    h, w = img.shape
+    d, bg, lit, hidden = _coarse_darkness(img, kernel)
     # Darkness over its local noise threshold: > 1 where a printed line may be.
     thr_map, state.floor = _threshold_map(d, bg, 4 * kernel, hidden, state.floor, lit)
     z = d / thr_map
@@ -260,9 +266,8 @@ def _coarse_maps(img: NDArray, kernel: int, state: _ScaleState) -> _CoarseMaps:
     # Clutter's long lines can outvote a small target's diameters: a generous number of the
     # strongest lines is tried (a crossing without rings around it costs little).
     lines = _hough_lines(mask, min_votes=int(0.08 * min(h, w)), max_lines=16)
-    for a in (d, bg, z_rays):
-        a.flags.writeable = False  # shared by both passes
-    return _CoarseMaps(d, bg, z_rays, lines)
+    z_rays.flags.writeable = False  # shared by both passes
+    return _CoarseMaps(z_rays, lines), d, bg
 
 
 def _detect_with_kernel(
@@ -280,10 +285,11 @@ def _detect_with_kernel(
     """
     h, w = img.shape
     radii = np.asarray(target.ring_radii_mm, dtype=np.float64)
+    d: NDArray | None = None
+    bg: NDArray | None = None
     if kernel not in state.coarse:
-        state.coarse[kernel] = _coarse_maps(img, kernel, state)
-    maps = state.coarse[kernel]
-    d, bg, z_rays, lines = maps.d, maps.bg, maps.z_rays, maps.lines
+        state.coarse[kernel], d, bg = _coarse_maps(img, kernel, state)
+    z_rays, lines = state.coarse[kernel].z_rays, state.coarse[kernel].lines
     thr = 1.0
     if len(lines) < 2:
         return TargetObservation.failed("no pair of diameter lines found", size, KIND)
@@ -345,6 +351,8 @@ def _detect_with_kernel(
     bright = _bright_mask(img, kernel2)
     if kernel2 != kernel:
         d, bg, _ = _darkness(img, kernel2, bright > 0)
+    elif d is None or bg is None:  # the second pass: the coarse maps again (not kept)
+        d, bg, _, _ = _coarse_darkness(img, kernel)
     # The spline over the part the profiles reach: a ring point moves by up to a search
     # (3 half windows) when refined, and its profile spans a search and a window beyond it.
     spline = spline_window(d, list(conics.values()), c, 2 * (4 * half_window + 1) + 8)

@@ -176,6 +176,11 @@ def _label(
                     and den > 0.05
                     and a * radii[0] / den <= blind + tol_px
                 )
+            if fits1 and not fits0 and m1 < m:
+                # the same crossings as ring 1's fit, from ring 0 (the last crossing, which
+                # that fit leaves out, may be clutter beyond the outer ring)
+                a, b, worst01 = _fit_labels(radii, found, 0, m1)
+                fits0 = worst01 <= tol_px + tol_frac * found[m1 - 1]
             if fits0 and fits1:
                 m = 0
             elif fits1:

@@ -10,6 +10,7 @@ import pytest
 from scipy import ndimage
 
 from calibration.detection.ray_kernels import (
+    _fit_labels,
     label_rays,
     line_centres,
     spline_along,
@@ -165,11 +166,45 @@ def test_a_hidden_start_does_not_let_a_ray_that_fits_from_ring_0_be_labelled_fro
     assert np.all(count == 0)  # the hidden start may hide ring 0
     count, _, _ = label_rays(d, centre, angles, radii, 0.3, ring0_hidden=True)
     assert np.all(count == 0)
+    # (the premise: rings 1-3 fit the crossings too, with ring 0 under the stripe)
+    d_seen = np.where(d < 0, 0.0, d)
+    _, peaks_seen, _ = label_rays(d_seen, centre, angles, radii, 0.3)
+    fits1 = 0
+    for row in peaks_seen:
+        a, b, worst = _fit_labels(radii, row, 1, 3)
+        fits1 += worst <= 1.5 + 0.01 * row[2] and a * radii[0] / (1 + b * radii[0]) < 10.5
+    assert fits1 > 40
     # with the centre in view the same crossings are rings 0-2
     d[d < 0] = 0.0
     count, peaks, err = label_rays(d, centre, angles, radii, 0.3)
     assert np.all(count == 3) and np.all(err < 1.0)
     np.testing.assert_allclose(peaks[:, :3], np.tile([16.0, 32.0, 48.0], (48, 1)), atol=1.0)
+
+
+def test_clutter_beyond_the_outer_ring_does_not_let_a_ray_be_labelled_from_ring_1():
+    # All four rings' worth of crossings: 16, 32, 48 px (rings 0-2 exactly, or rings 1-3
+    # within the tolerance with ring 0 in the dark run at the centre) and clutter at 90 px.
+    # From ring 0 the clutter spoils the fit of all four; ring 1's fit leaves it out. The
+    # ray is ambiguous all the same: the first three fit from ring 0.
+    rng = np.random.default_rng(9)
+    radii = np.array([10.0, 20.0, 30.0, 40.0])
+    d = np.zeros((300, 400))
+    cv2.circle(d, (190, 160), 7, 1.0, -1)
+    for r in (16, 32, 48, 90):
+        cv2.circle(d, (190, 160), r, 1.0, 2)
+    d = np.maximum(cv2.GaussianBlur(d, (0, 0), 1.0) + rng.normal(0.0, 0.02, d.shape), 0.0)
+    centre = np.array([190.0, 160.0])
+    angles = np.linspace(0, 2 * np.pi, 48, endpoint=False) + 0.013
+    count, peaks, err = label_rays(d, centre, angles, radii, 0.3)
+    assert np.all(count == 4) and np.all(err > 1.5 + 0.01 * 90.0)
+    # (the premise: rings 1-3 fit the first three crossings, ring 0 inside the dark run)
+    fits1 = 0
+    for row in peaks:
+        a, b, worst = _fit_labels(radii, row, 1, 3)
+        fits1 += worst <= 1.5 + 0.01 * row[2] and a * radii[0] / (1 + b * radii[0]) < 9.5
+    assert fits1 > 40
+    count, _, _ = label_rays(d, centre, angles, radii, 0.3, ring0_hidden=True)
+    assert np.all(count == 0)
 
 
 def test_asking_for_a_hidden_ring_0_leaves_rays_that_see_it_as_they_were():
