@@ -97,6 +97,10 @@ log = logging.getLogger(__name__)
 
 KIND = "concentric_circles"
 
+#: The coarse stage's maps hold the darkness over its local noise threshold: a printed line
+#: may be where it is over this (the Hough mask and the rays' crossings alike).
+Z_LINE = 1.0
+
 
 @dataclass(frozen=True)
 class _CoarseMaps:
@@ -108,7 +112,7 @@ class _CoarseMaps:
     """``(H, W)`` float64: darkness over its local threshold; -1 where the print is hidden
     (stripe, glare)."""
     lines: list[tuple[float, float]]
-    """The strongest long lines of ``z_rays > 1`` (Hough ``(rho, theta)``)."""
+    """The strongest long lines of ``z_rays > Z_LINE`` (Hough ``(rho, theta)``)."""
 
 
 @dataclass
@@ -257,10 +261,10 @@ def _coarse_maps(
     background; sets ``state.floor`` where it is ``None`` (the first scale)."""
     h, w = img.shape
     d, bg, lit, hidden = _coarse_darkness(img, kernel)
-    # Darkness over its local noise threshold: > 1 where a printed line may be.
+    # Darkness over its local noise threshold (> Z_LINE where a printed line may be).
     thr_map, state.floor = _threshold_map(d, bg, 4 * kernel, hidden, state.floor, lit)
     z = d / thr_map
-    mask = (z > 1.0).astype(np.uint8) * 255
+    mask = (z > Z_LINE).astype(np.uint8) * 255
     # Rays stop where the print is hidden (laser stripe, glare): see label_rays.
     z_rays = np.where(hidden, -1.0, z)
     # Clutter's long lines can outvote a small target's diameters: a generous number of the
@@ -290,7 +294,6 @@ def _detect_with_kernel(
     if kernel not in state.coarse:
         state.coarse[kernel], d, bg = _coarse_maps(img, kernel, state)
     z_rays, lines = state.coarse[kernel].z_rays, state.coarse[kernel].lines
-    thr = 1.0
     if len(lines) < 2:
         return TargetObservation.failed("no pair of diameter lines found", size, KIND)
 
@@ -313,12 +316,12 @@ def _detect_with_kernel(
             axis_angles = [t1 + np.pi / 2, t1 - np.pi / 2, t2 + np.pi / 2, t2 - np.pi / 2]
             # a quarter of the rays first: most crossings of clutter lines stop here
             _, quick = _label_rays(
-                z_rays, c, radii, thr, axis_angles, n_rays=24, ring0_hidden=state.ring0_hidden
+                z_rays, c, radii, Z_LINE, axis_angles, n_rays=24, ring0_hidden=state.ring0_hidden
             )
             if quick < 2 or (best is not None and 4 * quick < 0.5 * best[0]):
                 continue
             per_ring, good = _label_rays(
-                z_rays, c, radii, thr, axis_angles, ring0_hidden=state.ring0_hidden
+                z_rays, c, radii, Z_LINE, axis_angles, ring0_hidden=state.ring0_hidden
             )
             if best is None or good > best[0]:
                 best = (good, c, per_ring, (l1, l2), axis_angles)
@@ -330,7 +333,7 @@ def _detect_with_kernel(
     _, c, per_ring, (l1, l2), axis_angles = best
     # the chosen centre's rings from many more rays (the kernel makes them cheap)
     per_ring, _ = _label_rays(
-        z_rays, c, radii, thr, axis_angles, n_rays=384, ring0_hidden=state.ring0_hidden
+        z_rays, c, radii, Z_LINE, axis_angles, n_rays=384, ring0_hidden=state.ring0_hidden
     )
 
     # -- initial conics and the pencil centre

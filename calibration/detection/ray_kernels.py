@@ -131,8 +131,7 @@ def _label(
             j += 1
         # Blind up to here: a hidden start and the dark run touching the start (the centre's
         # own crossing of the diameters, and with it the innermost ring where its image is
-        # too small to be told from them).
-        blind = 1.0 + j
+        # too small to be told from them): the run ends at t = 1 + j_blind.
         j_blind = j
         m = 0
         while j < n and m < k_max:
@@ -174,7 +173,7 @@ def _label(
                 fits1 = (
                     worst1 <= tol_px + tol_frac * found[m1 - 1]
                     and den > 0.05
-                    and a * radii[0] / den <= blind + tol_px
+                    and a * radii[0] / den <= 1.0 + j_blind + tol_px
                 )
             if fits1 and not fits0 and m1 < m:
                 # the same crossings as ring 1's fit, from ring 0 (the last crossing, which

@@ -123,6 +123,17 @@ def test_a_ray_ends_where_the_print_is_hidden_and_starts_where_it_leaves_it():
     assert np.all(count_s == 0)
 
 
+def _rays_fitting_from_ring_1(radii: np.ndarray, peaks: np.ndarray, ring0_within_px: float) -> int:
+    """How many rays' first three crossings (``peaks``, rings from 0) also fit rings 1-3 with
+    ring 0 predicted within ``ring0_within_px`` of the centre (the premise of the ambiguity
+    tests)."""
+    fits = 0
+    for row in peaks:
+        a, b, worst = _fit_labels(radii, row, 1, 3)
+        fits += worst <= 1.5 + 0.01 * row[2] and a * radii[0] / (1 + b * radii[0]) < ring0_within_px
+    return fits
+
+
 def test_a_ring_merged_with_the_centre_is_skipped_only_when_asked():
     # A small, steep target: the innermost ring's image (4.4 px) merges with the diameters'
     # crossing at O into one dark run from the centre. By default the first crossing seen is
@@ -169,11 +180,7 @@ def test_a_hidden_start_does_not_let_a_ray_that_fits_from_ring_0_be_labelled_fro
     # (the premise: rings 1-3 fit the crossings too, with ring 0 under the stripe)
     d_seen = np.where(d < 0, 0.0, d)
     _, peaks_seen, _ = label_rays(d_seen, centre, angles, radii, 0.3)
-    fits1 = 0
-    for row in peaks_seen:
-        a, b, worst = _fit_labels(radii, row, 1, 3)
-        fits1 += worst <= 1.5 + 0.01 * row[2] and a * radii[0] / (1 + b * radii[0]) < 10.5
-    assert fits1 > 40
+    assert _rays_fitting_from_ring_1(radii, peaks_seen, 10.5) > 40
     # with the centre in view the same crossings are rings 0-2
     d[d < 0] = 0.0
     count, peaks, err = label_rays(d, centre, angles, radii, 0.3)
@@ -198,11 +205,7 @@ def test_clutter_beyond_the_outer_ring_does_not_let_a_ray_be_labelled_from_ring_
     count, peaks, err = label_rays(d, centre, angles, radii, 0.3)
     assert np.all(count == 4) and np.all(err > 1.5 + 0.01 * 90.0)
     # (the premise: rings 1-3 fit the first three crossings, ring 0 inside the dark run)
-    fits1 = 0
-    for row in peaks:
-        a, b, worst = _fit_labels(radii, row, 1, 3)
-        fits1 += worst <= 1.5 + 0.01 * row[2] and a * radii[0] / (1 + b * radii[0]) < 9.5
-    assert fits1 > 40
+    assert _rays_fitting_from_ring_1(radii, peaks, 9.5) > 40
     count, _, _ = label_rays(d, centre, angles, radii, 0.3, ring0_hidden=True)
     assert np.all(count == 0)
 
