@@ -47,7 +47,9 @@ def _darkness(
     k = int(kernel_px) | 1
     se = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
     img32 = img.astype(np.float32)
-    bg = np.maximum(_grey_morphology(img, (cv2.MORPH_CLOSE, se)), img32)
+    # (integer images keep their own levels: see _grey_morphology)
+    levels = img if img.dtype in (np.uint8, np.uint16) else img32
+    bg = np.maximum(_grey_morphology(levels, (cv2.MORPH_CLOSE, se)), img32)
     d = 1.0 - img32 / np.maximum(bg, 1e-6)
     lit = _lit_level(bg, hidden)
     d[bg < 0.3 * lit] = 0.0
@@ -250,6 +252,13 @@ def _threshold_map(
 
 
 def _hough_lines(mask: NDArray, min_votes: int, max_lines: int = 8) -> list[tuple[float, float]]:
+    """The ``max_lines`` strongest lines of ``mask`` (Hough ``(rho, theta)``, 1 px and
+    0.25 deg steps) with at least ``max(min_votes, 10)`` pixels, strongest first.
+
+    A line within 4 deg of a stronger one that crosses it inside the image widened by half
+    its size on each side, or passes within 15 px of it at the image's centre, is the same
+    line and is left out.
+    """
     lines = cv2.HoughLines(mask, 1.0, np.pi / 720, max(min_votes, 10))
     if lines is None:
         return []
@@ -329,19 +338,19 @@ def _label_rays(
     :func:`~calibration.detection.ray_kernels.label_rays`.
     """
     angles = np.linspace(0, 2 * np.pi, n_rays, endpoint=False) + 0.013
-    keep = np.ones(n_rays, bool)
-    for a in axis_angles:
-        diff = np.abs((angles - a + np.pi) % (2 * np.pi) - np.pi)
-        keep &= diff > np.radians(6)
-    angles = angles[keep]
+    # (not within 6 deg of a diameter)
+    off_axes = (angles[:, None] - np.asarray(axis_angles)[None, :] + np.pi) % (2 * np.pi) - np.pi
+    angles = angles[np.all(np.abs(off_axes) > np.radians(6), axis=1)]
     count, peaks, err = label_rays(
         d, c, angles, radii, thr, FIT_TOL_PX, FIT_TOL_FRACTION, ring0_hidden
     )
     last = np.max(np.nan_to_num(peaks, nan=0.0), axis=1)  # the farthest labelled crossing
     ok = (count >= 3) & (err <= FIT_TOL_PX + FIT_TOL_FRACTION * last)
-    per_ring: list[list[tuple[float, NDArray]]] = [[] for _ in radii]
-    for i in np.flatnonzero(ok):
-        dirv = np.array([np.cos(angles[i]), np.sin(angles[i])])
-        for k in np.flatnonzero(np.isfinite(peaks[i])):
-            per_ring[k].append((float(angles[i]), c + peaks[i, k] * dirv))
+    fitted, fitted_angles = peaks[ok], angles[ok]
+    dirs = np.column_stack([np.cos(fitted_angles), np.sin(fitted_angles)])
+    per_ring: list[list[tuple[float, NDArray]]] = []
+    for k in range(len(radii)):
+        seen = np.isfinite(fitted[:, k])
+        points = c + fitted[seen, k, None] * dirs[seen]
+        per_ring.append(list(zip(fitted_angles[seen].tolist(), points, strict=True)))
     return per_ring, int(np.sum(count[ok] - 2))

@@ -426,9 +426,10 @@ def _relabel_by_ratios(conics: dict[int, NDArray], radii: NDArray) -> dict[int, 
 def _consistent_rings(conics: dict[int, NDArray], radii: NDArray) -> list[int]:
     """Rings whose conic agrees with most of the others as a member of the spec's pencil."""
     keys = sorted(conics)
+    agrees = {(i, j): _pair_agrees(conics, radii, i, j) for i, j in itertools.combinations(keys, 2)}
     keep = []
     for i in keys:
-        votes = [_pair_agrees(conics, radii, min(i, j), max(i, j)) for j in keys if j != i]
+        votes = [agrees[min(i, j), max(i, j)] for j in keys if j != i]
         if votes and sum(votes) > 0.5 * len(votes):
             keep.append(i)
     return keep
