@@ -244,12 +244,16 @@ def _trimmed_conic(points: NDArray) -> NDArray | None:
     return conic
 
 
-def _coarse_darkness(img: NDArray, kernel: int) -> tuple[NDArray, NDArray, float, NDArray]:
+def _coarse_darkness(
+    img: NDArray, kernel: int, hidden: NDArray | None = None
+) -> tuple[NDArray, NDArray, float, NDArray]:
     """The coarse stage's darkness, background, lit paper level and hidden (bright) pixels
-    with the closing kernel ``kernel`` px."""
+    with the closing kernel ``kernel`` px; ``hidden``: the bright pixels where already known
+    (``_bright_mask(img, kernel) > 0``)."""
     # Coarse stage on a lightly smoothed image: noise and grain drop about threefold, a
     # printed line keeps most of its darkness.
-    hidden = _bright_mask(img, kernel) > 0
+    if hidden is None:
+        hidden = _bright_mask(img, kernel) > 0
     d, bg, lit = _darkness(cv2.GaussianBlur(img, (0, 0), 1.0), kernel, hidden)
     return d, bg, lit, hidden
 
@@ -355,7 +359,7 @@ def _detect_with_kernel(
     if kernel2 != kernel:
         d, bg, _ = _darkness(img, kernel2, bright > 0)
     elif d is None or bg is None:  # the second pass: the coarse maps again (not kept)
-        d, bg, _, _ = _coarse_darkness(img, kernel)
+        d, bg, _, _ = _coarse_darkness(img, kernel, bright > 0)
     # The spline over the part the profiles reach: a ring point moves by up to a search
     # (3 half windows) when refined, and its profile spans a search and a window beyond it.
     spline = spline_window(d, list(conics.values()), c, 2 * (4 * half_window + 1) + 8)

@@ -13,12 +13,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calibration.detection.conics import intersect_lines
-from calibration.detection.ray_kernels import label_rays, tile_thresholds
-
-#: A ray's crossings fit the radii when the projectivity's largest residual is at most
-#: ``FIT_TOL_PX + FIT_TOL_FRACTION * t_last`` px (the coarse crossings' own error and the lens).
-FIT_TOL_PX = 1.5
-FIT_TOL_FRACTION = 0.01
+from calibration.detection.ray_kernels import (
+    FIT_TOL_FRACTION,
+    FIT_TOL_PX,
+    label_rays,
+    tile_thresholds,
+)
 
 #: The darkness threshold's floor (:func:`_threshold_map`) is the lit paper's own noise level,
 #: between these two: one grey level of an 8-bit image at the paper's level (no fainter print

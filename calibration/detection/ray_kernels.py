@@ -34,6 +34,8 @@ from numpy.typing import NDArray
 from scanner.core.jit import HAVE_NUMBA, njit
 
 __all__ = [
+    "FIT_TOL_FRACTION",
+    "FIT_TOL_PX",
     "HAVE_NUMBA",
     "label_rays",
     "line_centres",
@@ -41,6 +43,11 @@ __all__ = [
     "tile_thresholds",
     "window_touches",
 ]
+
+#: A ray's crossings fit the radii when the projectivity's largest residual is at most
+#: ``FIT_TOL_PX + FIT_TOL_FRACTION * t_last`` px (the coarse crossings' own error and the lens).
+FIT_TOL_PX = 1.5
+FIT_TOL_FRACTION = 0.01
 
 
 @njit(cache=True, nogil=True)
@@ -206,8 +213,8 @@ def label_rays(
     angles: NDArray,
     radii: NDArray,
     thr: float,
-    tol_px: float = 1.5,
-    tol_frac: float = 0.01,
+    tol_px: float = FIT_TOL_PX,
+    tol_frac: float = FIT_TOL_FRACTION,
     ring0_hidden: bool = False,
 ) -> tuple[NDArray, NDArray, NDArray]:
     """Each ray's first crossings of dark lines and how well they fit the radii's projectivity.

@@ -10,6 +10,8 @@ import pytest
 from scipy import ndimage
 
 from calibration.detection.ray_kernels import (
+    FIT_TOL_FRACTION,
+    FIT_TOL_PX,
     _fit_labels,
     label_rays,
     line_centres,
@@ -130,7 +132,10 @@ def _rays_fitting_from_ring_1(radii: np.ndarray, peaks: np.ndarray, ring0_within
     fits = 0
     for row in peaks:
         a, b, worst = _fit_labels(radii, row, 1, 3)
-        fits += worst <= 1.5 + 0.01 * row[2] and a * radii[0] / (1 + b * radii[0]) < ring0_within_px
+        fits += (
+            worst <= FIT_TOL_PX + FIT_TOL_FRACTION * row[2]
+            and a * radii[0] / (1 + b * radii[0]) < ring0_within_px
+        )
     return fits
 
 
@@ -149,7 +154,7 @@ def test_a_ring_merged_with_the_centre_is_skipped_only_when_asked():
     centre = np.array([190.0, 160.0])
     angles = np.linspace(0, 2 * np.pi, 48, endpoint=False) + 0.013
     count, _, err = label_rays(d, centre, angles, radii, 0.3)
-    assert np.all((count < 3) | (err > 1.5 + 0.01 * 66.0))
+    assert np.all((count < 3) | (err > FIT_TOL_PX + FIT_TOL_FRACTION * 66.0))
     count, peaks, err = label_rays(d, centre, angles, radii, 0.3, ring0_hidden=True)
     labelled = (count == 3) & (err < 1.5)
     assert labelled.sum() > 40
@@ -203,7 +208,7 @@ def test_clutter_beyond_the_outer_ring_does_not_let_a_ray_be_labelled_from_ring_
     centre = np.array([190.0, 160.0])
     angles = np.linspace(0, 2 * np.pi, 48, endpoint=False) + 0.013
     count, peaks, err = label_rays(d, centre, angles, radii, 0.3)
-    assert np.all(count == 4) and np.all(err > 1.5 + 0.01 * 90.0)
+    assert np.all(count == 4) and np.all(err > FIT_TOL_PX + FIT_TOL_FRACTION * 90.0)
     # (the premise: rings 1-3 fit the first three crossings, ring 0 inside the dark run)
     assert _rays_fitting_from_ring_1(radii, peaks, 9.5) > 40
     count, _, _ = label_rays(d, centre, angles, radii, 0.3, ring0_hidden=True)
@@ -218,7 +223,7 @@ def test_asking_for_a_hidden_ring_0_leaves_rays_that_see_it_as_they_were():
     angles = np.linspace(0, 2 * np.pi, 96, endpoint=False) + 0.013
     count, peaks, err = label_rays(d, centre, angles, radii, 0.3)
     last = np.max(np.nan_to_num(peaks), axis=1)
-    fits = (count >= 3) & (err <= 1.5 + 0.01 * last)
+    fits = (count >= 3) & (err <= FIT_TOL_PX + FIT_TOL_FRACTION * last)
     assert fits.sum() > 48
     count_h, peaks_h, err_h = label_rays(d, centre, angles, radii, 0.3, ring0_hidden=True)
     np.testing.assert_array_equal(count_h[fits], count[fits])
