@@ -7,6 +7,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanner.stripe.fast import _measure_lines, _measure_many
+from scanner.stripe.kernels import kth_smallest
 from scanner.stripe.profile import _FWHM_PER_SIGMA
 
 __all__ = ["auto_half_window", "estimate_noise"]
@@ -19,8 +20,7 @@ def _median(values: NDArray) -> float:
     """
     v = np.asarray(values).reshape(-1)
     if 0 < v.size <= 4096 and v.dtype in (np.uint8, np.uint16):  # lower median, as below
-        k = (v.size - 1) // 2
-        return float(np.partition(v, k)[k])
+        return kth_smallest(v, (v.size - 1) // 2)
     if v.dtype.kind == "f" and v.size:  # as np.median: the two middle values' mean
         k = v.size // 2
         if v.size % 2:

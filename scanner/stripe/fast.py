@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from scanner.stripe.kernels import HAVE_NUMBA, line_peaks
+from scanner.stripe.kernels import HAVE_NUMBA, kth_smallest, line_peaks
 from scanner.stripe.profile import _FWHM_PER_SIGMA, StripeFlag, StripeOptions, _Peaks
 
 
@@ -296,7 +296,7 @@ def _remeasure_uncommon(
         far_w = width[~near] if near is not None else width
         if far_w.size == 0:
             return _measure(img, lines, cols, hw, sat)[0]
-        typical = float(np.partition(far_w, far_w.size // 2)[far_w.size // 2])
+        typical = kth_smallest(far_w, far_w.size // 2)
     odd = width > 1.3 * typical
     if peak.max() >= sat:
         odd |= peak >= sat

@@ -6,9 +6,9 @@ import cv2
 import numpy as np
 import pytest
 
-from scanner.stripe import fast, precise
+from scanner.stripe import fast, kernels, precise
 from scanner.stripe.extract import StripeFlag, extract_stripe
-from scanner.stripe.kernels import HAVE_NUMBA, line_peaks, steger_points
+from scanner.stripe.kernels import HAVE_NUMBA, kth_smallest, line_peaks, steger_points
 from scanner.virtual_cell.analytic import StripeSegment, render_stripes
 
 pytestmark = pytest.mark.skipif(not HAVE_NUMBA, reason="numba is not installed")
@@ -208,6 +208,7 @@ def numpy_path(monkeypatch):
         with monkeypatch.context() as m:
             m.setattr(fast, "HAVE_NUMBA", False)
             m.setattr(precise, "HAVE_NUMBA", False)
+            m.setattr(kernels, "HAVE_NUMBA", False)
             return extract_stripe(*args, **kwargs)
 
     return run
@@ -299,3 +300,28 @@ def test_auto_half_window_is_the_numpy_one(monkeypatch):
 def test_line_peaks_refuses_what_the_kernel_cannot_read(frame, hw, step, reason) -> None:
     with pytest.raises(ValueError, match=reason):
         line_peaks(frame, step, hw, 10.0)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float32, np.float64])
+def test_kth_smallest_is_numpys_partition(dtype):
+    rng = np.random.default_rng(11)
+    # (the compiled function's own Python, as where numba is missing, on a few of them)
+    py = getattr(kernels._kth_smallest, "py_func", kernels._kth_smallest)
+    for trial in range(2000):
+        n = int(rng.integers(1, 1500))
+        if trial % 3:
+            values = np.abs(rng.normal(60.0, 20.0, n)).astype(dtype)
+        else:  # many ties
+            values = rng.integers(0, 4, n).astype(dtype)
+        if values.dtype.kind == "f" and trial % 5 == 0:
+            values[rng.random(n) < 0.3] = np.nan  # NaN sorts last
+        k = int(rng.integers(0, n))
+        want = float(np.partition(values, k)[k])
+        got = [kth_smallest(values, k)] + ([float(py(values, k))] if trial < 100 else [])
+        for g in got:
+            assert g == want or (np.isnan(g) and np.isnan(want)), (trial, n, k, g, want)
+
+
+def test_kth_smallest_refuses_k_outside_the_values():
+    with pytest.raises(ValueError, match="k: expected 0 <= k < 3, got 3"):
+        kth_smallest(np.zeros(3, np.float32), 3)
