@@ -12,7 +12,9 @@ The pipeline, every geometric fact coming from the target spec:
    ``t = a r / (1 + b r)`` of the known radii, which labels the rings and rejects rays that
    a laser stripe, the diameter lines or clutter disturb.
 4. *Pencil*: conics fitted to each ring; the image of O is the eigenvector of ``C_i^-1 C_j``
-   with the non-repeated eigenvalue, which must equal ``(r_j / r_i)^2`` of the spec.
+   with the non-repeated eigenvalue, which must equal ``(r_j / r_i)^2`` of the spec. Rings
+   seen over arcs too short for conics of their own (a laser stripe over O) are fitted
+   together, as concentric ellipses of one shape centred where the rays start.
 5. *Sub-pixel*: for every ring, profiles along the conic's normals are sampled (bicubic) and
    the centre line of the printed line found as the fixed point of a symmetric-window
    centroid; the conic is refitted (algebraic, then Sampson distance) with outlier rejection.
@@ -63,6 +65,7 @@ from calibration.detection.concentric_rays import (
     _threshold_map,
 )
 from calibration.detection.concentric_rings import (
+    MIN_CONIC_POINTS,
     ConcentricDetectorSettings,
     _conic_axes_ratio,
     _conic_normals,
@@ -77,6 +80,7 @@ from calibration.detection.concentric_rings import (
     _refine_ring,
     _relabel_by_ratios,
     _unit_line,
+    concentric_affine_conics,
     pencil_tolerance_px,
     spline_window,
 )
@@ -88,6 +92,7 @@ from calibration.detection.conics import (
     sampson_distances,
 )
 from calibration.detection.observations import AxisObservation, RingObservation, TargetObservation
+from calibration.detection.ray_kernels import FIT_TOL_PX
 from scanner.core.images import to_gray_float
 from scanner.core.targets import ConcentricCirclesTarget
 
@@ -128,6 +133,10 @@ class _ScaleState:
     ring0_hidden: bool = False
     """Rays may start at ring 1 (:func:`~calibration.detection.ray_kernels.label_rays`): the
     second pass, for views every scale refused."""
+    joint: bool = False
+    """Rings seen over arcs too short for conics of their own may be fitted together
+    (:func:`~calibration.detection.concentric_rings.concentric_affine_conics`): the third
+    pass, for views both others refused."""
     coarse: dict[int, _CoarseMaps] = field(default_factory=dict)
     """The coarse maps of each scale (closing kernel, px) the first pass made: the second
     pass labels other rays on the same maps."""
@@ -172,9 +181,11 @@ def detect_concentric(
     # On a small, steep target the innermost ring's image can merge with the diameters'
     # crossing at O, and every ray then names ring 1 as ring 0. Rays starting at ring 1 are
     # a second pass only: a ray's three crossings check such a labelling weakly, so a view
-    # the first pass measures is never exposed to it.
-    for ring0_hidden in (False, True):
-        state.ring0_hidden = ring0_hidden
+    # the first pass measures is never exposed to it. A laser stripe over O may leave each
+    # ring seen over an arc too short for its own conic: a third pass fits them together
+    # (on an affine model, which a finer scale's own conics beat where they are there).
+    for ring0_hidden, joint in ((False, False), (True, False), (False, True)):
+        state.ring0_hidden, state.joint = ring0_hidden, joint
         for kernel in kernels:
             state.progress = 0
             obs = _detect_with_kernel(img, target, s, kernel, size, state)
@@ -183,29 +194,38 @@ def detect_concentric(
             if state.progress > furthest:  # the reason of the scale that got furthest
                 if ring0_hidden:
                     obs = replace(obs, reason=f"{obs.reason} (rays labelled from ring 1)")
+                elif joint:  # (further than the first pass: the rings were fitted together)
+                    obs = replace(obs, reason=f"{obs.reason} (rings fitted together)")
                 refused, furthest = obs, state.progress
     return refused  # type: ignore[return-value]
 
 
 def _coarse_pencil(
-    per_ring: list[list[tuple[float, NDArray]]], radii: NDArray, c: NDArray, min_rings: int
+    per_ring: list[list[tuple[float, NDArray]]],
+    radii: NDArray,
+    c: NDArray,
+    min_rings: int,
+    joint: bool = False,
 ) -> tuple[dict[int, NDArray], NDArray] | str:
     """The rings' coarse conics from their ray crossings and the pencil's centre, or why not.
 
     Each ring's conic is fitted to all its crossings and, should their pencil disagree with
     the spec's radius ratios, to the crossings that remain when those far from the fit are
     dropped; with either, conics whose labels are off by a ring are named by their sizes.
+    ``joint``: where too few rings give conics of their own, all of them are fitted together
+    (:func:`~calibration.detection.concentric_rings.concentric_affine_conics`).
     """
+    # Rings with crossings over at least a quarter turn (fewer or closer points pin no conic)
+    arcs: dict[int, NDArray] = {}
+    for k, pts in enumerate(per_ring):
+        if len(pts) >= MIN_CONIC_POINTS:
+            if np.ptp(np.unwrap(np.sort(np.array([p[0] for p in pts])))) >= np.pi / 2:
+                arcs[k] = np.array([p[1] for p in pts])
     fitted = 0
     for fit in (lambda p: fit_conic(p, geometric=False), _trimmed_conic):
         conics: dict[int, NDArray] = {}
-        for k, pts in enumerate(per_ring):
-            if len(pts) < 8:
-                continue
-            spread = np.ptp(np.unwrap(np.sort(np.array([p[0] for p in pts]))))
-            if spread < np.pi / 2:
-                continue
-            conic = fit(np.array([p[1] for p in pts]))
+        for k, points in arcs.items():
+            conic = fit(points)
             if conic is not None and _ellipse_ok(conic, c):
                 conics[k] = conic
         fitted = max(fitted, len(conics))
@@ -221,6 +241,13 @@ def _coarse_pencil(
             if centre is not None:
                 return renamed, centre
     if fitted < min_rings:
+        if joint and len(arcs) >= min_rings:
+            # Each ring seen over too short an arc for a conic of its own (a laser stripe
+            # over the centre): all of them at once, as concentric ellipses of one shape
+            # (members of the spec's pencil by construction: their centre is the pencil's).
+            together = concentric_affine_conics(arcs, radii, c, FIT_TOL_PX)
+            if together is not None:
+                return together
         return f"no ring pencil found: {fitted} rings fitted, expected >= {min_rings}"
     return (
         "no ring pencil found: the ring conics are not images of the spec's concentric "
@@ -238,7 +265,7 @@ def _trimmed_conic(points: NDArray) -> NDArray | None:
         if keep.all():
             break
         points = points[keep]
-        if len(points) < 8:
+        if len(points) < MIN_CONIC_POINTS:
             return None
         conic = fit_conic(points, geometric=False)
     return conic
@@ -341,7 +368,7 @@ def _detect_with_kernel(
     )
 
     # -- initial conics and the pencil centre
-    pencil = _coarse_pencil(per_ring, radii, c, s.min_rings)
+    pencil = _coarse_pencil(per_ring, radii, c, s.min_rings, state.joint)
     if isinstance(pencil, str):
         return TargetObservation.failed(pencil, size, KIND)
     conics, c = pencil

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
+from scipy.optimize import least_squares
 
 from calibration.detection.conics import (
     fit_conic,
@@ -25,7 +26,15 @@ from calibration.detection.conics import (
 )
 from calibration.detection.ray_kernels import line_centres, spline_along, window_touches
 
-__all__ = ["ConcentricDetectorSettings", "SplineWindow"]
+__all__ = [
+    "MIN_CONIC_POINTS",
+    "ConcentricDetectorSettings",
+    "SplineWindow",
+    "concentric_affine_conics",
+]
+
+#: Fewest points a ring's conic is fitted to (five pin a conic; a few more outvote a bad one).
+MIN_CONIC_POINTS = 8
 
 
 @dataclass(frozen=True)
@@ -211,6 +220,100 @@ def _ellipse_ok(conic: NDArray, c: NDArray) -> bool:
     x = np.array([c[0], c[1], 1.0])
     # The centre must be inside: sign of x^T C x opposite to the sign of the quadratic part.
     return float(x @ conic @ x) * float(np.trace(a)) < 0
+
+
+def concentric_affine_conics(
+    points_px: dict[int, NDArray], radii: NDArray, centre_px: NDArray, tol_px: float
+) -> tuple[dict[int, NDArray], NDArray] | None:
+    """The ring conics of one joint fit: concentric ellipses of one shape, ``r_k`` to scale.
+
+    Where each ring is seen over a short arc (a laser stripe over the centre hides the rest),
+    its own conic is not pinned down, but together the rings are: a small target's image is
+    nearly affine, and the affine image of concentric circles is the concentric ellipses
+    ``(p - o)^T M (p - o) = r_k^2`` of one ``M`` and ``o`` (five parameters for all rings;
+    started from the fit linear in ``M``, ``M o`` and a free constant, refined by least
+    squares on the points' radial distances, px, with a robust loss). Over short arcs a
+    labelling one ring off fits nearly as well, with ``o`` moved by most of a ring spacing:
+    ``o`` must be where the points were found from.
+
+    Parameters
+    ----------
+    points_px : dict of int to ndarray, shape (N_k, 2)
+        Each ring's points, by ring index.
+    radii : ndarray, shape (K,)
+        The spec's ring radii, mm.
+    centre_px : ndarray, shape (2,)
+        Where the points were found from (the rays' origin): ``o`` must be within
+        :func:`pencil_tolerance_px` of the ring spacing from it.
+    tol_px : float
+        The fit is refused where a ring's median distance from its ellipse, or the 90th
+        percentile over all points, exceeds this.
+
+    Returns
+    -------
+    tuple of (dict of int to ndarray, shape (3, 3); ndarray, shape (2,)), or None
+        The conic of each ring in ``points_px`` with at least :data:`MIN_CONIC_POINTS` points
+        (image coordinates) and their centre ``o``, px; or ``None``: fewer than two such
+        rings, points not finite, no ellipse, a fit beyond ``tol_px`` or a centre away from
+        ``centre_px``.
+
+    Notes
+    -----
+    The model is affine: under a perspective whose vanishing line is near the target (a
+    steep tilt, a near target) the rings' images are no longer one shape, and the fit is
+    refused or its conics are off by a part of a ring spacing (about 0.15 of it at 12 deg
+    tilt, 0.4-0.6 at 35-50 deg, for a 105 deg arc), which the fine stage's search may not
+    reach. A homography's two more parameters would lift that.
+    """
+    keys = [k for k in sorted(points_px) if len(points_px[k]) >= MIN_CONIC_POINTS]
+    if len(keys) < 2:
+        return None
+    pts = np.vstack([points_px[k] for k in keys]) - centre_px
+    if not np.all(np.isfinite(pts)) or tol_px <= 0:
+        return None
+    r = np.concatenate([np.full(len(points_px[k]), radii[k]) for k in keys])
+    x, y = pts.T
+    a = np.column_stack([x * x, 2 * x * y, y * y, -2 * x, -2 * y, np.ones_like(x)])
+    norm = np.linalg.norm(a, axis=0)
+    if np.any(norm == 0):
+        return None
+    lin = np.linalg.lstsq(a / norm, r * r, rcond=None)[0] / norm
+    m0 = np.array([[lin[0], lin[1]], [lin[1], lin[2]]])
+    if np.linalg.det(m0) <= 0 or m0[0, 0] <= 0:
+        return None
+
+    def radial_px(params: NDArray) -> NDArray:
+        m = np.array([[params[0], params[1]], [params[1], params[2]]])
+        d = pts - params[3:5]
+        q = np.maximum(np.einsum("ni,ij,nj->n", d, m, d), 1e-12)
+        # (sqrt(q) - r) mm along the ray from o, in px: times |d| / sqrt(q)
+        return (1.0 - r / np.sqrt(q)) * np.linalg.norm(d, axis=1)
+
+    x0 = np.array([lin[0], lin[1], lin[2], *np.linalg.solve(m0, lin[3:5])])
+    fit = least_squares(radial_px, x0, loss="soft_l1", f_scale=0.5 * tol_px, x_scale="jac")
+    m = np.array([[fit.x[0], fit.x[1]], [fit.x[1], fit.x[2]]])
+    if not fit.success or np.linalg.det(m) <= 0 or m[0, 0] <= 0:
+        return None
+    o = centre_px + fit.x[3:5]
+    mo = m @ o
+    conics = {
+        k: np.array(
+            [
+                [m[0, 0], m[0, 1], -mo[0]],
+                [m[1, 0], m[1, 1], -mo[1]],
+                [-mo[0], -mo[1], float(o @ mo) - radii[k] ** 2],
+            ]
+        )
+        for k in keys
+    }
+    dist = np.abs(radial_px(fit.x))
+    bounds = np.cumsum([0] + [len(points_px[k]) for k in keys])
+    per_ring = [float(np.median(dist[bounds[i] : bounds[i + 1]])) for i in range(len(keys))]
+    if max(per_ring) > tol_px or float(np.percentile(dist, 90)) > tol_px:
+        return None
+    if np.linalg.norm(o - centre_px) > pencil_tolerance_px(_min_spacing_px(conics, o)):
+        return None
+    return conics, o
 
 
 def _unit_line(ln: NDArray) -> NDArray:

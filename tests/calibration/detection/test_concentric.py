@@ -145,15 +145,16 @@ def test_no_target_gives_a_reason():
 
 
 def test_of_several_scales_the_refusal_that_got_furthest_is_reported(monkeypatch):
-    # each closing kernel fails at another stage, in both passes (the second with rays that
-    # may start at ring 1): the user sees the most telling reason
+    # each closing kernel fails at another stage, in all three passes (the second with rays
+    # that may start at ring 1, the third with rings that may be fitted together): the user
+    # sees the most telling reason
     # (two closing kernels for a 400 px image)
     stages = iter([(1, "no ring pencil found: 1 rings fitted"), (5, "diameter line not printed"),
-                   (3, "too oblique"), (5, "as far, second")])  # fmt: skip
+                   (3, "too oblique"), (5, "as far, second"), (1, "third"), (2, "third, too")])  # fmt: skip
     passes = []
 
     def fake(img, target, s, kernel, size, state):
-        passes.append(state.ring0_hidden)
+        passes.append((state.ring0_hidden, state.joint))
         state.progress, reason = next(stages)
         return TargetObservation.failed(reason, size, "concentric_circles")
 
@@ -161,11 +162,16 @@ def test_of_several_scales_the_refusal_that_got_furthest_is_reported(monkeypatch
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert not obs
     assert obs.reason == "diameter line not printed"
-    assert passes == [False, False, True, True]
-    # a reason of the second pass that got further says where it comes from
-    stages = iter([(1, "first"), (2, "first, too"), (3, "second"), (6, "marker not found")])
+    assert passes == [(False, False)] * 2 + [(True, False)] * 2 + [(False, True)] * 2
+    # a reason of a later pass that got further says where it comes from
+    stages = iter([(1, "first"), (2, "first, too"), (3, "second"), (6, "marker not found"),
+                   (1, "third"), (1, "third, too")])  # fmt: skip
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert obs.reason == "marker not found (rays labelled from ring 1)"
+    stages = iter([(1, "first"), (2, "first, too"), (2, "second"), (1, "second, too"),
+                   (4, "too oblique"), (1, "third, too")])  # fmt: skip
+    obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
+    assert obs.reason == "too oblique (rings fitted together)"
 
 
 def test_the_first_scales_darkness_floor_holds_at_the_smaller_scales(monkeypatch):

@@ -10,9 +10,10 @@ from calibration.detection.concentric_rings import (
     SPLINE_WINDOW_GUARD_PX,
     _prune_by_pencil,
     _relabel_by_ratios,
+    concentric_affine_conics,
     spline_window,
 )
-from calibration.detection.conics import fit_conic, sampson_distances
+from calibration.detection.conics import fit_conic, pencil_center, sampson_distances
 from calibration.detection.ray_kernels import spline_along
 
 
@@ -119,3 +120,91 @@ def test_the_spline_window_is_clipped_to_the_image_or_is_all_of_it() -> None:
     hyperbola = np.array([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -100.0]])
     whole = spline_window(d, [hyperbola], np.array([150.0, 100.0]), 5.0)
     assert whole.origin_px == (0, 0) and whole.coef.shape == d.shape
+
+
+def _rings_on_arcs(
+    rng: np.random.Generator, radii: np.ndarray, arc: tuple[float, float], noise_px: float
+) -> tuple[dict[int, np.ndarray], np.ndarray, np.ndarray]:
+    """Points of each ring over ``arc`` (rad) through a mildly perspective homography (a
+    small target seen 12 deg tilted), with noise; the homography and the image of O."""
+    r = np.radians(12.0)
+    rot = np.array([[1.0, 0, 0], [0, np.cos(r), -np.sin(r)], [0, np.sin(r), np.cos(r)]])
+    k = np.array([[1200.0, 0, 640], [0, 1200.0, 512], [0, 0, 1]])
+    image_from_target = k @ np.column_stack([rot[:, 0], rot[:, 1], [30.0, -20.0, 1500.0]])
+    points = {}
+    for i, radius in enumerate(radii):
+        a = rng.uniform(*arc, 40)
+        q = np.column_stack([radius * np.cos(a), radius * np.sin(a), np.ones_like(a)])
+        p = q @ image_from_target.T
+        points[i] = p[:, :2] / p[:, 2:] + rng.normal(0.0, noise_px, (40, 2))
+    o = image_from_target[:, 2]
+    return points, image_from_target, o[:2] / o[2]
+
+
+def test_rings_seen_over_short_arcs_give_their_conics_together() -> None:
+    # Each ring over 100 deg only (a stripe over the centre hides the rest): the joint fit
+    # gives every ring's conic to a fraction of a pixel over the arc, and well within the
+    # fine stage's reach (a quarter of the 12 px ring spacing) around the whole ring.
+    rng = np.random.default_rng(3)
+    radii = np.array([20.0, 35.0, 50.0, 65.0, 80.0])
+    arc = (0.2, 0.2 + np.radians(100))
+    points, image_from_target, o = _rings_on_arcs(rng, radii, arc, 0.3)
+    # (the rays' origin a little off O, as a Hough crossing is)
+    joint = concentric_affine_conics(points, radii, o + np.array([1.5, -1.0]), 1.5)
+    assert joint is not None
+    conics, centre = joint
+    assert sorted(conics) == [0, 1, 2, 3, 4]
+    assert np.linalg.norm(centre - o) < 1.0
+    a = np.linspace(0, 2 * np.pi, 360, endpoint=False)
+    on_arc = (a >= arc[0]) & (a <= arc[1])
+    for i, radius in enumerate(radii):
+        q = np.column_stack([radius * np.cos(a), radius * np.sin(a), np.ones_like(a)])
+        p = q @ image_from_target.T
+        dist = np.abs(sampson_distances(conics[i], p[:, :2] / p[:, 2:]))
+        assert np.max(dist[on_arc]) < 0.5
+        assert np.max(dist) < 0.25 * 12.0
+    pencil, ratio = pencil_center(conics[0], conics[4])
+    np.testing.assert_allclose(pencil[:2], centre, atol=1e-6)
+    assert abs(ratio / (radii[4] / radii[0]) ** 2 - 1) < 1e-6  # the spec's pencil
+
+
+def test_rings_labelled_one_off_do_not_fit_together() -> None:
+    # Rings 1-4 named 0-3 (the innermost lost under a stripe): concentric ellipses of one
+    # shape cannot take radii whose ratios are not the printed ones.
+    rng = np.random.default_rng(4)
+    radii = np.array([20.0, 35.0, 50.0, 65.0, 80.0])
+    points, _, o = _rings_on_arcs(rng, radii, (0.2, 0.2 + np.radians(100)), 0.3)
+    assert concentric_affine_conics(points, radii, o, 1.5) is not None
+    shifted = {k - 1: points[k] for k in range(1, 5)}
+    assert concentric_affine_conics(shifted, radii, o, 1.5) is None
+
+
+def test_a_few_mislabelled_rays_are_outvoted_and_many_refuse_the_joint_fit() -> None:
+    rng = np.random.default_rng(6)
+    radii = np.array([20.0, 35.0, 50.0, 65.0, 80.0])
+    arc = (0.2, 0.2 + np.radians(100))
+    points, image_from_target, o = _rings_on_arcs(rng, radii, arc, 0.3)
+
+    def shifted(share: float) -> dict[int, np.ndarray]:
+        # that share of each ring's points taken from the next ring out (a ray one ring off)
+        n = int(share * 40)
+        return {k: np.vstack([points[k + 1][:n], points[k][n:]]) for k in range(4)}
+
+    few = concentric_affine_conics(shifted(0.05), radii, o, 1.5)
+    assert few is not None
+    a = np.linspace(*arc, 50)
+    for k in range(4):
+        q = np.column_stack([radii[k] * np.cos(a), radii[k] * np.sin(a), np.ones_like(a)])
+        p = q @ image_from_target.T
+        assert np.max(np.abs(sampson_distances(few[0][k], p[:, :2] / p[:, 2:]))) < 0.5
+    assert concentric_affine_conics(shifted(0.3), radii, o, 1.5) is None
+
+
+def test_too_few_points_give_no_joint_conics() -> None:
+    rng = np.random.default_rng(5)
+    radii = np.array([20.0, 35.0, 50.0])
+    points, _, o = _rings_on_arcs(rng, radii, (0.0, 1.0), 0.3)
+    assert concentric_affine_conics({0: points[0]}, radii, o, 1.5) is None
+    assert concentric_affine_conics({k: v[:5] for k, v in points.items()}, radii, o, 1.5) is None
+    points[1][3] = np.nan
+    assert concentric_affine_conics(points, radii, o, 1.5) is None

@@ -133,6 +133,9 @@ def _detected_stripe_view(
         (1, 105, "the Hough pair that gave the centre held the stripe's edge"),
         (0, 20, "the outer ring's conic, extrapolated past the stripe, named a wrong point"),
         (6, 81, "a stripe far brighter than the paper was taken for its lit level"),
+        # refused until the twentieth session: a wide stripe 4 px from O leaves each ring
+        # over about 105 deg, too short an arc for a conic of its own (fitted jointly now)
+        (0, 25, "a stripe over O: each ring seen over too short an arc for its own conic"),
     ],
 )
 def test_views_with_a_laser_stripe_over_the_target_are_detected_and_labelled_right(
