@@ -328,13 +328,14 @@ def _label_rays(
     axis_angles: list[float],
     n_rays: int = 96,
     ring0_hidden: bool = False,
+    bundle_step_px: float = 0.0,
 ) -> tuple[list[list[tuple[float, NDArray]]], int]:
     """Ring crossings labelled by the 1-D projectivity along rays from ``c``.
 
     Returns per ring a list of (angle, point px) and the support of ``c``: over the rays
     whose crossings fit the projectivity, the crossings beyond the two that any fit of its
     two parameters takes (three crossings fit nearly any point near a target; a centre whose
-    rays cross every ring in order is the target's). ``ring0_hidden``: see
+    rays cross every ring in order is the target's). ``ring0_hidden``, ``bundle_step_px``: see
     :func:`~calibration.detection.ray_kernels.label_rays`.
     """
     angles = np.linspace(0, 2 * np.pi, n_rays, endpoint=False) + 0.013
@@ -342,7 +343,7 @@ def _label_rays(
     off_axes = (angles[:, None] - np.asarray(axis_angles)[None, :] + np.pi) % (2 * np.pi) - np.pi
     angles = angles[np.all(np.abs(off_axes) > np.radians(6), axis=1)]
     count, peaks, err = label_rays(
-        d, c, angles, radii, thr, FIT_TOL_PX, FIT_TOL_FRACTION, ring0_hidden
+        d, c, angles, radii, thr, FIT_TOL_PX, FIT_TOL_FRACTION, ring0_hidden, bundle_step_px
     )
     last = np.max(np.nan_to_num(peaks, nan=0.0), axis=1)  # the farthest labelled crossing
     ok = (count >= 3) & (err <= FIT_TOL_PX + FIT_TOL_FRACTION * last)

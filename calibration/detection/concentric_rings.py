@@ -338,6 +338,48 @@ def _min_spacing_px(conics: dict[int, NDArray], c: NDArray) -> float:
     return float(max(np.nanmin(gaps), 3.0))
 
 
+def _nested_rings(conics: dict[int, NDArray], c: NDArray) -> dict[int, NDArray]:
+    """The ring conics left when those crossing another are dropped, one at a time.
+
+    The images of concentric circles are nested: along every ray from the image of O, ring
+    ``j > i`` lies beyond ring ``i``. A coarse conic that crosses another was fitted to
+    crossings of other rings or clutter; kept, it would set the smallest ring spacing
+    (:func:`_min_spacing_px`) to its 3 px floor, and with it every window of the fine stage.
+    The conic dropped first is the one whose crossings, summed over the others (how far the
+    inner one reaches beyond the outer along 64 rays), go deepest; of two equal ones, the
+    inner.
+
+    Parameters
+    ----------
+    conics : dict of int to ndarray, shape (3, 3)
+        Coarse conics by ring index.
+    c : ndarray, shape (2,)
+        Image of the centre O, px.
+
+    Returns
+    -------
+    dict of int to (3, 3) ndarray
+        The conics that cross no other.
+    """
+    angles = np.linspace(0, 2 * np.pi, 64, endpoint=False)
+    dirs = np.column_stack([np.cos(angles), np.sin(angles)])
+    ts = {k: _conic_point_on_ray(cn, c, dirs) for k, cn in conics.items()}
+    keys = sorted(ts)
+    while len(keys) > 1:
+        depth = dict.fromkeys(keys, 0.0)
+        for a, b in itertools.combinations(keys, 2):
+            inside_out = ts[a] - ts[b]  # > 0 where the inner ring lies beyond the outer
+            inside_out = inside_out[np.isfinite(inside_out)]
+            over = max(float(np.max(inside_out)), 0.0) if inside_out.size else 0.0
+            depth[a] += over
+            depth[b] += over
+        worst = max(keys, key=lambda k: depth[k])
+        if depth[worst] <= 0:
+            break
+        keys.remove(worst)
+    return {k: conics[k] for k in keys}
+
+
 def _ratio_tolerance(
     conic_i: NDArray, conic_j: NDArray, c: NDArray, expect: float, strict: bool
 ) -> float:

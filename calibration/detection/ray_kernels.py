@@ -6,8 +6,9 @@ above the threshold (to sub-pixel, the vertex of a parabola through three sample
 touching the ray's start is the centre's own crossing of the diameter lines and is skipped),
 fits the first ones to the 1-D projectivity ``t = a r / (1 + b r)`` of the known radii and
 gives the fit's largest residual; on request it may label them from ring 1 instead, where
-ring 0's image is lost in that run at the start. Candidate centres are many (every crossing
-of two long lines, at several scales), so this loop was most of the detector's time.
+ring 0's image is lost in that run at the start, or sample bundles of parallel rays.
+Candidate centres are many (every crossing of two long lines, at several scales), so this
+loop was most of the detector's time.
 
 :func:`spline_along` samples a cubic-spline coefficient image along lines (the fine stage's
 profiles across the rings), as :func:`scipy.ndimage.map_coordinates` does (``order=3,
@@ -88,7 +89,7 @@ def _fit_labels(radii, found, o, m):  # pragma: no cover - compiled
 
 @njit(cache=True, nogil=True)
 def _label(
-    d, cx, cy, cos_a, sin_a, radii, thr, tol_px, tol_frac, ring0_hidden
+    d, cx, cy, cos_a, sin_a, radii, thr, tol_px, tol_frac, ring0_hidden, bundle_step_px
 ):  # pragma: no cover - compiled
     h, w = d.shape
     n_rays = cos_a.size
@@ -127,6 +128,36 @@ def _label(
                 row[s] = (1 - fv) * ((1 - fu) * d[v0, u0] + fu * d[v0, u0 + 1]) + fv * (
                     (1 - fu) * d[v0 + 1, u0] + fu * d[v0 + 1, u0 + 1]
                 )
+                if bundle_step_px > 0:
+                    # the mean over parallel rays either side but for the darkest and the
+                    # lightest: a faint line's samples add up, and a diameter, a stripe's edge
+                    # or clutter under one of them does not decide
+                    total = row[s]
+                    darkest = row[s]
+                    lightest = row[s]
+                    used = 1
+                    for side in (-2.0, -1.0, 1.0, 2.0):
+                        uo = u - side * bundle_step_px * sin_a[i]
+                        vo = v + side * bundle_step_px * cos_a[i]
+                        if uo >= 1 and uo <= w - 2 and vo >= 1 and vo <= h - 2:
+                            a0 = int(uo)
+                            b0 = int(vo)
+                            c00 = d[b0, a0]
+                            c01 = d[b0, a0 + 1]
+                            c10 = d[b0 + 1, a0]
+                            c11 = d[b0 + 1, a0 + 1]
+                            if c00 >= 0 and c01 >= 0 and c10 >= 0 and c11 >= 0:
+                                gu = uo - a0
+                                gv = vo - b0
+                                x = (1 - gv) * ((1 - gu) * c00 + gu * c01) + gv * (
+                                    (1 - gu) * c10 + gu * c11
+                                )
+                                total += x
+                                darkest = max(darkest, x)
+                                lightest = min(lightest, x)
+                                used += 1
+                    if used >= 3:  # (else the middle ray's own sample)
+                        row[s] = (total - darkest - lightest) / (used - 2)
             else:
                 row[s] = 0.0
                 if was_inside:
@@ -216,6 +247,7 @@ def label_rays(
     tol_px: float = FIT_TOL_PX,
     tol_frac: float = FIT_TOL_FRACTION,
     ring0_hidden: bool = False,
+    bundle_step_px: float = 0.0,
 ) -> tuple[NDArray, NDArray, NDArray]:
     """Each ray's first crossings of dark lines and how well they fit the radii's projectivity.
 
@@ -244,7 +276,16 @@ def label_rays(
         A ray is then labelled only where exactly one of the two labellings fits (a hidden
         start that may hide the first ring forbids labelling from ring 0, but a fit from
         ring 0 still refuses the ray as ambiguous).
-
+    bundle_step_px : float
+        If > 0, each ray is a bundle of five parallel rays this far apart (offset across
+        the ray), each sample the mean of theirs but for the darkest and the lightest (nearly
+        the mean's noise, robust to one outlier): a line too faint for one ray's samples adds
+        up along its ring, which a bundle crosses at nearly one distance from the centre (a
+        ring whose image curves with radius ``rho`` px moves in by about
+        ``bundle_step_px**2 / rho``), and one side ray over a diameter, a stripe's edge or
+        clutter does not decide. Side samples outside the image or over hidden print are
+        left out (with fewer than three left, the middle ray's sample stands); only the
+        middle ray's hidden samples end the ray.
     Returns
     -------
     count : ndarray, shape (R,), int
@@ -271,6 +312,7 @@ def label_rays(
         float(tol_px),
         float(tol_frac),
         bool(ring0_hidden),
+        float(bundle_step_px),
     )
 
 

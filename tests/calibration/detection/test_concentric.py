@@ -145,16 +145,17 @@ def test_no_target_gives_a_reason():
 
 
 def test_of_several_scales_the_refusal_that_got_furthest_is_reported(monkeypatch):
-    # each closing kernel fails at another stage, in all three passes (the second with rays
-    # that may start at ring 1, the third with rings that may be fitted together): the user
-    # sees the most telling reason
+    # each closing kernel fails at another stage, in all five passes (the second with rays
+    # that may start at ring 1, the third with rings that may be fitted together, the last
+    # two with rays in bundles): the user sees the most telling reason
     # (two closing kernels for a 400 px image)
     stages = iter([(1, "no ring pencil found: 1 rings fitted"), (5, "diameter line not printed"),
-                   (3, "too oblique"), (5, "as far, second"), (1, "third"), (2, "third, too")])  # fmt: skip
+                   (3, "too oblique"), (5, "as far, second"), (1, "third"), (2, "third, too"),
+                   (4, "fourth"), (5, "fourth, as far"), (1, "fifth"), (5, "fifth, as far")])  # fmt: skip
     passes = []
 
     def fake(img, target, s, kernel, size, state):
-        passes.append((state.ring0_hidden, state.joint))
+        passes.append((state.ring0_hidden, state.joint, state.bundle_z_line))
         state.progress, reason = next(stages)
         return TargetObservation.failed(reason, size, "concentric_circles")
 
@@ -162,16 +163,21 @@ def test_of_several_scales_the_refusal_that_got_furthest_is_reported(monkeypatch
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert not obs
     assert obs.reason == "diameter line not printed"
-    assert passes == [(False, False)] * 2 + [(True, False)] * 2 + [(False, True)] * 2
+    single = [(False, False, 0.0), (True, False, 0.0), (False, True, 0.0)]
+    bundles = [(False, False, concentric.Z_LINE), (False, False, concentric.BUNDLE_Z_LINE)]
+    assert passes == [p for p in single + bundles for _ in range(2)]
+    assert 0 < concentric.BUNDLE_Z_LINE < concentric.Z_LINE
     # a reason of a later pass that got further says where it comes from
-    stages = iter([(1, "first"), (2, "first, too"), (3, "second"), (6, "marker not found"),
-                   (1, "third"), (1, "third, too")])  # fmt: skip
+    firsts = [(1, "first"), (2, "first, too")]
+    stages = iter(firsts + [(3, "second"), (6, "marker not found")] + [(1, "later")] * 6)
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert obs.reason == "marker not found (rays labelled from ring 1)"
-    stages = iter([(1, "first"), (2, "first, too"), (2, "second"), (1, "second, too"),
-                   (4, "too oblique"), (1, "third, too")])  # fmt: skip
+    stages = iter(firsts + [(2, "second"), (1, "second, too"), (4, "too oblique")] + [(1, "")] * 5)
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert obs.reason == "too oblique (rings fitted together)"
+    stages = iter(firsts + [(1, "later")] * 7 + [(3, "1 rings measured")])
+    obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
+    assert obs.reason == "1 rings measured (rays in bundles)"
 
 
 def test_the_first_scales_darkness_floor_holds_at_the_smaller_scales(monkeypatch):
@@ -199,6 +205,24 @@ def test_too_oblique_is_refused():
     T = look_at_pose(560.0, 75.0, 0.0, 0.0)
     obs = detect_target(render(demo_target(), K, T, SIZE, rng, supersample=3), demo_target())
     assert not obs
+
+
+def test_passes_labelling_from_ring_0_search_each_scales_centres_once(monkeypatch):
+    # The third and fourth passes label the candidates' rays as the first does: they take
+    # its chosen centres instead of searching the line crossings again.
+    calls = []
+    real = concentric._best_centre
+
+    def spy(z_rays, lines, radii, size, ring0_hidden):
+        calls.append(ring0_hidden)
+        return real(z_rays, lines, radii, size, ring0_hidden)
+
+    monkeypatch.setattr(concentric, "_best_centre", spy)
+    rng = np.random.default_rng(17)
+    T = look_at_pose(560.0, 75.0, 0.0, 0.0)
+    assert not detect_target(render(demo_target(), K, T, SIZE, rng, supersample=3), demo_target())
+    assert calls.count(True) > 0  # the second pass searched every scale with lines again
+    assert calls.count(False) == calls.count(True)
 
 
 @pytest.mark.slow

@@ -8,6 +8,7 @@ from scipy import ndimage
 
 from calibration.detection.concentric_rings import (
     SPLINE_WINDOW_GUARD_PX,
+    _nested_rings,
     _prune_by_pencil,
     _relabel_by_ratios,
     concentric_affine_conics,
@@ -48,6 +49,33 @@ def test_sizes_that_fit_no_spec_give_nothing() -> None:
     radii = np.array([10.0, 20.0, 30.0])
     conics = {0: _circle(10.0), 1: _circle(10.0 * 1.17)}
     assert _relabel_by_ratios(conics, radii) == {}
+
+
+def _ellipse(a_px: float, b_px: float, centre=(320.0, 240.0)) -> np.ndarray:
+    cx, cy = centre
+    return np.array(
+        [
+            [1 / a_px**2, 0, -cx / a_px**2],
+            [0, 1 / b_px**2, -cy / b_px**2],
+            [-cx / a_px**2, -cy / b_px**2, cx**2 / a_px**2 + cy**2 / b_px**2 - 1],
+        ]
+    )
+
+
+def test_a_conic_crossing_the_others_is_dropped_and_nested_ones_kept() -> None:
+    c = np.array([320.0, 240.0])
+    rings = {k: _circle(20.0 * (k + 1)) for k in range(5)}
+    assert sorted(_nested_rings(rings, c)) == [0, 1, 2, 3, 4]
+    # Ring 2 fitted to a flat arc: 25 px across one way, 85 px the other, crossing 1 and 3.
+    crossed = dict(rings)
+    crossed[2] = _ellipse(85.0, 25.0)
+    kept = _nested_rings(crossed, c)
+    assert sorted(kept) == [0, 1, 3, 4]
+    for k in kept:
+        np.testing.assert_array_equal(kept[k], rings[k])
+    # two conics crossing only each other, as deep as each other: the inner one goes
+    tied = {0: _circle(20.0), 1: _ellipse(45.0, 35.0), 2: _ellipse(35.0, 45.0)}
+    assert sorted(_nested_rings(tied, c)) == [0, 2]
 
 
 def test_a_ring_that_follows_something_else_over_part_of_its_length_is_cut_back() -> None:

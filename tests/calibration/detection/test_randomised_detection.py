@@ -104,6 +104,13 @@ def _detected_view(
         (7, 52, "a small steep 4-ring target whose innermost ring merges with O's crossing"),
         (6, 89, "the innermost ring lost at the rays' start"),
         (9, 97, "the innermost ring lost at the rays' start, and a false centre"),
+        # refused until the twenty-first session
+        (7, 1, "a coarse conic crossing the others set the ring spacing to nothing"),
+        (8, 117, "a single ray's crossings too few for coarse conics the fine stage can use"),
+        (3, 50, "a 62 deg tilt: single rays' crossings give no pencil, bundles do"),
+        (3, 92, "grain and a stripe: single rays' crossings give no pencil, bundles do"),
+        (1, 17, "14 thin rings 10 px apart, 21 grey levels in grain: at the threshold itself"),
+        (5, 21, "a 59 deg tilt, 24 grey levels in grain: bundles below the single threshold"),
     ],
 )
 def test_views_the_benchmark_missed_are_detected_and_labelled_right(

@@ -125,6 +125,54 @@ def test_a_ray_ends_where_the_print_is_hidden_and_starts_where_it_leaves_it():
     assert np.all(count_s == 0)
 
 
+def test_rays_in_bundles_find_a_faint_print_single_rays_miss():
+    # A darkness map in the detector's units (threshold 1 at 6 MAD of the paper: noise 0.25)
+    # whose printed lines peak just under the threshold: single rays miss crossings of nearly
+    # every ray; the median of a bundle of five parallel rays 2 px apart, at the bundle's
+    # threshold, labels most rays, near the diameters too.
+    rng = np.random.default_rng(6)
+    radii = np.array([10.0, 20.0, 30.0, 40.0, 55.0])
+    centre = np.array([190.0, 160.0])
+    clean = np.zeros((300, 400))
+    for r in 2.2 * radii:
+        cv2.ellipse(clean, (190, 160), (int(r), int(0.8 * r)), 20.0, 0.0, 360.0, 1.0, 2)
+    axes_deg = np.array([20.0, 110.0])
+    for a in np.radians(axes_deg):
+        ends = centre + 150 * np.array([[np.cos(a), np.sin(a)], [-np.cos(a), -np.sin(a)]])
+        cv2.line(clean, tuple(ends[0].astype(int)), tuple(ends[1].astype(int)), 1.0, 2)
+    clean = cv2.GaussianBlur(clean, (0, 0), 1.0)
+    clean *= 0.9 / np.median(clean[clean > 0.5 * clean.max()])  # a line's peak: 0.9
+    noise = cv2.GaussianBlur(rng.normal(0.0, 1.0, clean.shape), (0, 0), 0.7)
+    faint = np.maximum(clean + 0.25 * noise / noise.std(), 0.0)
+    angles = np.linspace(0, 2 * np.pi, 96, endpoint=False) + 0.013
+    off_axes = np.abs((np.degrees(angles)[:, None] - axes_deg + 90) % 180 - 90).min(axis=1)
+    rays = off_axes > 6  # as the detector's rays
+
+    def labelled(d: np.ndarray, thr: float, step_px: float) -> tuple[np.ndarray, np.ndarray]:
+        count, peaks, err = label_rays(
+            d, centre, angles, radii, thr, FIT_TOL_PX, FIT_TOL_FRACTION, False, step_px
+        )
+        tol = FIT_TOL_PX + FIT_TOL_FRACTION * np.nanmax(np.nan_to_num(peaks), axis=1)
+        return (count == len(radii)) & (err <= tol), peaks
+
+    single, _ = labelled(faint, 1.0, 0.0)
+    bundled, peaks = labelled(faint, 0.7, 2.0)
+    assert single[rays].mean() < 0.1
+    assert bundled[rays].mean() > 0.6
+    assert bundled[rays & (off_axes < 15)].mean() > 0.6  # side rays over a diameter
+    # a bundle crosses each ring where a single ray does without the noise
+    clean_single, clean_peaks = labelled(clean, 0.7, 0.0)
+    assert clean_single[rays].mean() > 0.9
+    offsets = (peaks - clean_peaks)[bundled & clean_single & rays]
+    assert np.median(np.abs(offsets)) < 0.3
+    assert np.max(np.abs(offsets)) < 2.0  # (1.2-1.8 px over seeds 6-9)
+    # and without noise a bundle moves a crossing little
+    clean_bundled, bundled_peaks = labelled(clean, 0.7, 2.0)
+    both = clean_bundled & clean_single & rays
+    assert both.mean() > 0.9 * rays.mean()
+    assert np.max(np.abs(bundled_peaks - clean_peaks)[both]) < 0.6  # a tilted ring across it
+
+
 def _rays_fitting_from_ring_1(radii: np.ndarray, peaks: np.ndarray, ring0_within_px: float) -> int:
     """How many rays' first three crossings (``peaks``, rings from 0) also fit rings 1-3 with
     ring 0 predicted within ``ring0_within_px`` of the centre (the premise of the ambiguity
