@@ -10,11 +10,13 @@ The pipeline, every geometric fact coming from the target spec:
    images of the rings in order (each ring's image is a convex curve around the image of
    O). A ray's first crossings are accepted only when they obey the 1-D projectivity
    ``t = a r / (1 + b r)`` of the known radii, which labels the rings and rejects rays that
-   a laser stripe, the diameter lines or clutter disturb.
+   a laser stripe, the diameter lines or clutter disturb. Lines too faint for single rays
+   (at the threshold itself, in paper grain) are found by bundles of parallel rays.
 4. *Pencil*: conics fitted to each ring; the image of O is the eigenvector of ``C_i^-1 C_j``
-   with the non-repeated eigenvalue, which must equal ``(r_j / r_i)^2`` of the spec. Rings
-   seen over arcs too short for conics of their own (a laser stripe over O) are fitted
-   together, as concentric ellipses of one shape centred where the rays start.
+   with the non-repeated eigenvalue, which must equal ``(r_j / r_i)^2`` of the spec. Ring
+   images are nested: a conic crossing another is dropped. Rings seen over arcs too short
+   for conics of their own (a laser stripe over O) are fitted together, as concentric
+   ellipses of one shape centred where the rays start.
 5. *Sub-pixel*: for every ring, profiles along the conic's normals are sampled (bicubic) and
    the centre line of the printed line found as the fixed point of a symmetric-window
    centroid; the conic is refitted (algebraic, then Sampson distance) with outlier rejection.
@@ -24,6 +26,10 @@ The pipeline, every geometric fact coming from the target spec:
 6. *Labelling*: the orientation disc, looked for where each of the four candidate labellings
    puts it, must be dark at exactly one of them; A is that end, and C follows from z out of
    the face. Any doubt gives ``ok=False`` with a reason.
+
+The less usual paths (rays from ring 1, the joint fit, bundles) are later passes over the
+closing scales, run only where the first refused the view, so that a view the first pass
+measures is never exposed to their weaker checks.
 
 Steps 1-3 are in :mod:`calibration.detection.concentric_rays`, 4-5 in
 :mod:`calibration.detection.concentric_rings` (the diameters in
