@@ -358,7 +358,7 @@ def _nested_rings(conics: dict[int, NDArray], c: NDArray) -> dict[int, NDArray]:
 
     Returns
     -------
-    dict of int to (3, 3) ndarray
+    dict of int to ndarray, shape (3, 3)
         The conics that cross no other.
     """
     angles = np.linspace(0, 2 * np.pi, 64, endpoint=False)

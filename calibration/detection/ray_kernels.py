@@ -286,6 +286,7 @@ def label_rays(
         clutter does not decide. Side samples outside the image or over hidden print are
         left out (with fewer than three left, the middle ray's sample stands); only the
         middle ray's hidden samples end the ray.
+
     Returns
     -------
     count : ndarray, shape (R,), int
