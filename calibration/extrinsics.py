@@ -32,6 +32,7 @@ __all__ = [
     "estimate_pose",
     "paper_pose",
     "paper_rotation_from_vanishing_points",
+    "pose_covariance_as_turns",
     "project_target",
     "rodrigues_align",
 ]
@@ -75,6 +76,38 @@ def project_target(
         camera.dist,
     )
     return uv.reshape(-1, 2)
+
+
+def pose_covariance_as_turns(rotvec: ArrayLike, covariance: ArrayLike) -> NDArray:
+    """A pose's covariance moved from rotation-vector coordinates to small turns of the
+    camera frame.
+
+    Parameters
+    ----------
+    rotvec : array_like, shape (3,)
+        The pose's rotation vector (radians), the point the covariance was computed at.
+    covariance : array_like, shape (6, 6)
+        Covariance of (rotation vector, translation mm).
+
+    Returns
+    -------
+    ndarray, shape (6, 6)
+        Covariance of (``w`` rad, translation mm), where the pose's rotation is
+        ``exp(w) R``: the same whichever of a rotation's equivalent vectors gave it, and
+        unchanged when the target frame is turned about its origin.
+    """
+    r = np.asarray(rotvec, dtype=np.float64).reshape(3)
+    cov = np.asarray(covariance, dtype=np.float64)
+    if cov.shape != (6, 6):
+        raise ValueError(f"covariance: expected shape (6, 6), got {cov.shape}")
+    base = Rotation.from_rotvec(r).inv()
+    step = 1e-7
+    jac = np.eye(6)
+    for k in range(3):
+        d = np.zeros(3)
+        d[k] = step
+        jac[:3, k] = (Rotation.from_rotvec(r + d) * base).as_rotvec() / step
+    return jac @ cov @ jac.T
 
 
 def estimate_pose(

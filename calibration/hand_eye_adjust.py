@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from calibration.extrinsics import project_target
+from calibration.extrinsics import pose_covariance_as_turns, project_target
 from calibration.hand_eye_views import PosedView
 from scanner.core.camera import CameraModel
 from scanner.core.conventions import invert_transform, make_transform
@@ -80,15 +80,17 @@ def _forward_jacobian(fun: Callable[[NDArray], NDArray], p: NDArray, step: float
 
 
 def _pose_covariance(view: PosedView, camera: CameraModel) -> tuple[NDArray, float, int]:
-    """The view's own pose uncertainty: ``(6, 6)`` covariance of ``cam_from_target``'s (rvec,
-    tvec) per unit image variance, and its PnP residual sum of squares with its dof."""
+    """The view's own pose uncertainty from PnP: ``(6, 6)`` covariance of ``cam_from_target``
+    (camera-frame turns, translation) per unit image variance, and its residual sum of squares
+    with its dof."""
     ct = view.cam_from_target
     rvec = Rotation.from_matrix(ct[:3, :3]).as_rotvec()  # type: ignore[index]
     obj = np.ascontiguousarray(view.points_target.reshape(-1, 1, 3))
     proj, jac = cv2.projectPoints(obj, rvec, ct[:3, 3], camera.K, camera.dist)  # type: ignore[index]
     j = jac[:, :6]
     r = proj.reshape(-1, 2) - view.points_px
-    return np.linalg.pinv(j.T @ j), float(np.sum(r**2)), max(1, 2 * len(view.points_px) - 6)
+    cov = pose_covariance_as_turns(rvec, np.linalg.pinv(j.T @ j))
+    return cov, float(np.sum(r**2)), max(1, 2 * len(view.points_px) - 6)
 
 
 def _robot_misses(
@@ -133,7 +135,9 @@ def _adjust_robot_space(
     from X and Z in closed form, ``E_i = inv(B_i) Z inv(C_i) inv(X)``. The cost is the sum of
     ``E_i``'s whitened squares, its covariance the robot's repeatability (rotation
     ``sigma_r``, translation ``sigma_t``, per axis in the flange frame) plus ``C_i``'s own
-    uncertainty carried into ``E_i``. ``sigma_r`` and ``sigma_t`` are variance components
+    uncertainty carried into ``E_i`` (the view's ``pose_covariance`` where its adjustment gave
+    one, else PnP's on its features). Without it the variance components take up ``C_i``'s
+    errors as the robot's. ``sigma_r`` and ``sigma_t`` are variance components
     re-estimated from the misses until they settle: the data say how good the robot is.
     Twelve unknowns and six residuals per view: a fraction of a second.
     """
@@ -141,28 +145,38 @@ def _adjust_robot_space(
     flange_from_base = np.stack([invert_transform(v.base_from_flange) for v in views])
     cam_from_target = np.stack([v.cam_from_target for v in views])  # type: ignore[misc]
     target_from_cam = np.stack([invert_transform(c) for c in cam_from_target])
-    covs, sums, dofs = zip(*[_pose_covariance(v, camera) for v in views])
-    pose_cov = np.stack(covs)
-    var_px = max(sum(sums) / sum(dofs), 1e-6)  # image noise per coordinate, px^2
+    # C_i's covariance: the adjustment's that gave it, else PnP's scaled by the image noise
+    # of the views without one.
+    pnp = {i: _pose_covariance(v, camera) for i, v in enumerate(views) if v.pose_covariance is None}
+    var_px = float("nan")
+    if pnp:
+        sums = sum(s for _, s, _ in pnp.values())
+        var_px = max(sums / sum(d for _, _, d in pnp.values()), 1e-6)  # per coordinate, px^2
+    pose_cov = np.stack(
+        [
+            pnp[i][0] * var_px if i in pnp else np.asarray(v.pose_covariance, dtype=np.float64)
+            for i, v in enumerate(views)
+        ]
+    )
 
     def unpack(p: NDArray) -> tuple[NDArray, NDArray]:
         return _perturbed(x0, z0, p)
 
     def pose_to_miss(x: NDArray, z: NDArray) -> NDArray:
-        """``(n, 6, 6)`` derivative of each miss by its view's (rvec, tvec)."""
+        """``(n, 6, 6)`` derivative of each miss by its view's pose (camera-frame turn,
+        translation)."""
         base = _robot_misses(x, z, flange_from_base, target_from_cam)
         g = np.zeros((n, 6, 6))
-        rvecs = Rotation.from_matrix(cam_from_target[:, :3, :3]).as_rotvec()
+        rotations = Rotation.from_matrix(cam_from_target[:, :3, :3])
         step = 1e-6
         for k in range(6):
             d = np.zeros(6)
             d[k] = step
+            turned = (Rotation.from_rotvec(d[:3]) * rotations).as_matrix()
             moved = np.stack(
                 [
-                    invert_transform(
-                        make_transform(Rotation.from_rotvec(r + d[:3]), c[:3, 3] + d[3:])
-                    )
-                    for r, c in zip(rvecs, cam_from_target)
+                    invert_transform(make_transform(r, c[:3, 3] + d[3:]))
+                    for r, c in zip(turned, cam_from_target)
                 ]
             )
             g[:, :, k] = (_robot_misses(x, z, flange_from_base, moved) - base) / step
@@ -175,7 +189,7 @@ def _adjust_robot_space(
     jac = np.zeros((6 * n, 12))
     for _ in range(max(1, iterations)):
         g = pose_to_miss(*unpack(p))
-        from_image = var_px * np.einsum("nij,njk,nlk->nil", g, pose_cov, g)
+        from_image = np.einsum("nij,njk,nlk->nil", g, pose_cov, g)
         cov = from_image + np.diag(np.repeat(sig**2, 3))[None]
         whiten = np.linalg.inv(np.linalg.cholesky(cov))
 
@@ -228,8 +242,9 @@ def _adjust_robot_space(
     repeatability = {
         "rotation_deg": float(np.degrees(sig[0])),
         "translation_mm": float(sig[1]),
-        "image_px": float(np.sqrt(var_px)),
     }
+    if pnp:
+        repeatability["image_px"] = float(np.sqrt(var_px))
     return _Fit(
         x, z, std, _chain_residuals(views, camera, x, z), cost_residuals, camera, repeatability
     )

@@ -66,6 +66,11 @@ class PosedView:
         The same features in the target frame, mm.
     cam_from_target : ndarray, shape (4, 4) or None
         The view's own pose estimate (computed by PnP when None).
+    pose_covariance : ndarray, shape (6, 6) or None
+        Covariance of ``cam_from_target`` from the adjustment that gave it: small turns of
+        the camera frame (rad, see :func:`calibration.extrinsics.pose_covariance_as_turns`)
+        and translation (mm). None: from the PnP residuals of ``points_px``, which must
+        then be the detected features, not ones projected from the pose.
     """
 
     frame_id: int
@@ -73,6 +78,7 @@ class PosedView:
     points_px: NDArray
     points_target: NDArray
     cam_from_target: NDArray | None = None
+    pose_covariance: NDArray | None = None
 
 
 @dataclass

@@ -32,11 +32,12 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from calibration.detection.observations import TargetObservation
+from calibration.extrinsics import pose_covariance_as_turns
 from calibration.intrinsics_adjust import (
     PARAM_NAMES,
     _adjust,
+    adjustment_covariances,
     camera_matrix,
-    intrinsics_covariance,
 )
 from calibration.intrinsics_model import (
     DISTORTION_MODELS,
@@ -76,6 +77,10 @@ class IntrinsicsResult:
         Indices (into the input list) of the views used.
     cam_from_target : list of ndarray, shape (4, 4)
         Pose of each used view, in the order of ``view_indices``.
+    pose_covariance : list of ndarray, shape (6, 6)
+        Each pose's covariance (small turns of the camera frame rad, translation mm; see
+        :func:`calibration.extrinsics.pose_covariance_as_turns`) given the intrinsics, in
+        the same order; empty where the method gives none.
     rms_px : float
         RMS of all geometric residuals, pixels.
     per_view_rms_px : ndarray, shape (V,)
@@ -104,6 +109,7 @@ class IntrinsicsResult:
     method: str
     view_indices: list[int] = field(default_factory=list)
     cam_from_target: list[NDArray] = field(default_factory=list)
+    pose_covariance: list[NDArray] = field(default_factory=list)
     rms_px: float = float("nan")
     per_view_rms_px: NDArray = field(default_factory=lambda: np.zeros(0))
     std: dict[str, float] = field(default_factory=dict)
@@ -340,8 +346,10 @@ def calibrate_intrinsics(
     std: dict[str, float] = {}
     corr = np.full((9, 9), np.nan)
     uncertainty = None
+    pose_cov: list[NDArray] = []
     try:
-        c9 = intrinsics_covariance(prob, x, res, fixed)
+        c9, given_camera = adjustment_covariances(prob, x, res, fixed)
+        pose_cov = [pose_covariance_as_turns(p[:3], c) for p, c in zip(poses, given_camera)]
         sd = np.sqrt(np.maximum(np.diag(c9), 0))
         std = {n: float(v) for n, v in zip(PARAM_NAMES, sd)}
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -368,6 +376,7 @@ def calibrate_intrinsics(
         method="default",
         view_indices=used,
         cam_from_target=cam_from_target,
+        pose_covariance=pose_cov,
         rms_px=float(np.sqrt(np.mean(res**2))),
         per_view_rms_px=per_view,
         std=std,

@@ -18,7 +18,7 @@ from scipy.spatial.transform import Rotation
 
 from calibration.detection.observations import TargetObservation
 
-__all__ = ["PARAM_NAMES", "camera_matrix", "intrinsics_covariance"]
+__all__ = ["PARAM_NAMES", "adjustment_covariances", "camera_matrix", "intrinsics_covariance"]
 
 #: The nine intrinsics, in the order of the adjustment's parameter vector (then 6 per view).
 PARAM_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
@@ -361,11 +361,20 @@ def _adjust(
     return sol.x, prob.residuals(sol.x, update=False), prob, sol
 
 
-def intrinsics_covariance(
+def adjustment_covariances(
     prob: _Problem, x: NDArray, res: NDArray, fixed: tuple[str, ...]
-) -> NDArray:
-    """Covariance ``(9, 9)`` of :data:`PARAM_NAMES` after an adjustment, marginal over the
-    views' poses (held terms: zero rows and columns), from J^T J and the residual variance.
+) -> tuple[NDArray, list[NDArray]]:
+    """Covariances after an adjustment, from J^T J and the residual variance.
+
+    Returns
+    -------
+    intrinsics : ndarray, shape (9, 9)
+        :data:`PARAM_NAMES`, marginal over the views' poses (held terms: zero rows and
+        columns).
+    poses : list of ndarray, shape (6, 6)
+        Each view's pose (rotation vector rad, translation mm) given the intrinsics: its
+        own features' noise, which differs from view to view; what the intrinsics' error
+        adds is common to the views and is in ``intrinsics``.
 
     Raises
     ------
@@ -378,4 +387,13 @@ def intrinsics_covariance(
     free[[PARAM_NAMES.index(n) for n in fixed]] = False
     cov = np.zeros((x.size, x.size))
     cov[np.ix_(free, free)] = np.linalg.inv(JtJ[np.ix_(free, free)]) * sigma2
-    return cov[:9, :9]
+    blocks = [slice(9 + 6 * v, 15 + 6 * v) for v in range((x.size - 9) // 6)]
+    return cov[:9, :9], [np.linalg.inv(JtJ[b, b]) * sigma2 for b in blocks]
+
+
+def intrinsics_covariance(
+    prob: _Problem, x: NDArray, res: NDArray, fixed: tuple[str, ...]
+) -> NDArray:
+    """Covariance ``(9, 9)`` of :data:`PARAM_NAMES` after an adjustment, marginal over the
+    views' poses (see :func:`adjustment_covariances`)."""
+    return adjustment_covariances(prob, x, res, fixed)[0]

@@ -361,6 +361,7 @@ def calibrate_session(
     intr_pose = {
         found[i].id: np.asarray(p) for i, p in zip(intr.view_indices, intr.cam_from_target)
     }
+    intr_pose_cov = {found[i].id: c for i, c in zip(intr.view_indices, intr.pose_covariance)}
     for f in found:
         obs = observations[f.id]
         pose = estimate_pose(obs.points_px, obs.points_target, camera)
@@ -453,15 +454,22 @@ def calibrate_session(
             views: list[PosedView] = []
             for f in frames:
                 obs = observations[f.id]
-                px = obs.points_px
-                if isinstance(target, ConcentricCirclesTarget) and f.id in intr_pose:
+                px, pose_cov = obs.points_px, None
+                if isinstance(target, ConcentricCirclesTarget) and f.id in intr_pose_cov:
                     # The concentric target's few named points are noisier than the view's
                     # pose from the intrinsics adjustment (every ring edge and line point):
-                    # the hand-eye sees the features where that pose puts them.
+                    # the hand-eye sees the features where that pose puts them, with that
+                    # pose's covariance (their PnP residuals are nil).
                     px = project_target(camera, intr_pose[f.id], obs.points_target)
+                    pose_cov = intr_pose_cov[f.id]
                 views.append(
                     PosedView(
-                        f.id, f.base_from_flange, px, obs.points_target, cam_from_target[f.id]
+                        f.id,
+                        f.base_from_flange,
+                        px,
+                        obs.points_target,
+                        cam_from_target[f.id],
+                        pose_cov,
                     )  # type: ignore[arg-type]
                 )
             result = calibrate_hand_eye(
@@ -491,7 +499,7 @@ def calibrate_session(
                 }
                 observations[f.id] = relabel(observations[f.id], q.quarter_turns)  # type: ignore[arg-type]
                 cam_from_target[f.id] = cam_from_target[f.id] @ turn(q.quarter_turns)  # type: ignore[arg-type]
-                if f.id in intr_pose:
+                if f.id in intr_pose:  # its covariance, in the camera's turns, stays
                     intr_pose[f.id] = intr_pose[f.id] @ turn(q.quarter_turns)  # type: ignore[arg-type]
                 resolved.append(f)
             if resolved:

@@ -2,11 +2,13 @@
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from calibration.extrinsics import (
     estimate_pose,
     paper_pose,
     paper_rotation_from_vanishing_points,
+    pose_covariance_as_turns,
     project_target,
     rodrigues_align,
 )
@@ -83,3 +85,25 @@ def test_paper_pose_translation_from_the_stripe_on_o():
     # A point of the target lands where it should.
     p = transform_points(pose.cam_from_target, np.array([[10.0, 20.0, 0.0]]))
     assert np.allclose(p, transform_points(ct, np.array([[10.0, 20.0, 0.0]])), atol=1e-6)
+
+
+@pytest.mark.parametrize("angle_rad", [0.4, 3.1])  # 3.1: a camera looking down at the target
+def test_pose_covariance_as_turns_matches_sampled_turns(angle_rad):
+    # Rotation vectors drawn from the covariance, each turned into exp(w) R(r): the sampled
+    # w's covariance is what the conversion gives, near 180 deg too (where a vector and its
+    # equivalent on the far side differ by 2 pi).
+    rng = np.random.default_rng(5)
+    axis = np.array([0.9, 0.3, -0.2])
+    r = angle_rad * axis / np.linalg.norm(axis)
+    a = rng.normal(size=(6, 6)) * 1e-3
+    cov = a @ a.T
+    turned = pose_covariance_as_turns(r, cov)
+    draws = rng.multivariate_normal(np.zeros(6), cov, size=20_000)
+    base = Rotation.from_rotvec(r).inv()
+    w = (Rotation.from_rotvec(r + draws[:, :3]) * base).as_rotvec()
+    sampled = np.cov(np.column_stack([w, draws[:, 3:]]).T)
+    scale = np.sqrt(np.outer(np.diag(turned), np.diag(turned)))
+    assert np.max(np.abs(sampled - turned) / scale) < 0.05
+    assert np.allclose(turned[3:, 3:], cov[3:, 3:])  # translations are left as they are
+    with pytest.raises(ValueError, match=r"expected shape \(6, 6\)"):
+        pose_covariance_as_turns(r, np.eye(3))

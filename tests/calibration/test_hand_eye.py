@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from calibration.extrinsics import project_target
 from calibration.hand_eye import (
     PosedView,
     StripePointView,
@@ -159,6 +160,39 @@ def test_robot_cost_beats_image_cost_when_the_robot_repeatability_dominates():
     rot = np.mean([r["rotation_deg"] for r in repeat])
     trans = np.mean([r["translation_mm"] for r in repeat])
     assert 0.0035 < rot < 0.0065 and 0.014 < trans < 0.026
+
+
+def test_robot_repeatability_leaves_the_views_own_pose_noise_out():
+    # Target poses from an adjustment (as the concentric target's are: the intrinsics'
+    # adjustment over every ring edge), with their features projected from that pose, so PnP
+    # sees no residual. The pose covariance the view carries goes into the misses; without it
+    # the pose noise (0.003 deg, 0.015-0.03 mm: about 0.03 mm per axis at the flange) would
+    # be taken for the robot's 0.02 mm.
+    cov = np.diag(np.r_[np.full(3, np.radians(0.003)) ** 2, 0.015**2, 0.015**2, 0.03**2])
+    given, ignored = [], []
+    for seed in range(4):
+        rng = np.random.default_rng(300 + seed)
+        views, cam = S.posed_views(30, rng, noise_px=0.0)
+        reported = _with_robot_error(views, rng, 0.005, 0.02)
+        with_cov, without = [], []
+        for v, r in zip(views, reported):
+            ct = invert_transform(v.base_from_flange @ S.FLANGE_FROM_CAM) @ S.BASE_FROM_TARGET
+            d = rng.multivariate_normal(np.zeros(6), cov)
+            noisy = make_transform(
+                Rotation.from_rotvec(d[:3]) * Rotation.from_matrix(ct[:3, :3]), ct[:3, 3] + d[3:]
+            )
+            px = project_target(cam, noisy, v.points_target)
+            with_cov.append(
+                PosedView(v.frame_id, r.base_from_flange, px, v.points_target, noisy, cov)
+            )
+            without.append(PosedView(v.frame_id, r.base_from_flange, px, v.points_target, noisy))
+        given.append(calibrate_hand_eye(with_cov, cam, cost="robot").robot_repeatability)
+        ignored.append(calibrate_hand_eye(without, cam, cost="robot").robot_repeatability)
+    trans = np.mean([r["translation_mm"] for r in given])
+    rot = np.mean([r["rotation_deg"] for r in given])
+    assert 0.017 < trans < 0.023 and 0.0042 < rot < 0.0058
+    assert "image_px" not in given[0]  # no PnP residual was used
+    assert np.mean([r["translation_mm"] for r in ignored]) > 1.3 * trans
 
 
 def test_a_principal_point_error_turns_the_hand_eye_and_its_std_says_by_how_much():
