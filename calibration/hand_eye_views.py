@@ -109,7 +109,8 @@ class HandEyeResult:
     robot_repeatability : dict
         Estimated by the ``"robot"`` adjustment (also when ``"auto"`` then used the image
         cost): ``rotation_deg`` and ``translation_mm`` (the robot's misses, one sigma per
-        axis) and ``image_px`` (feature noise, per coordinate); empty otherwise.
+        axis) and, where some view's pose covariance came from its PnP residuals,
+        ``image_px`` (feature noise, per coordinate); empty otherwise.
     """
 
     ok: bool

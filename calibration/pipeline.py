@@ -459,7 +459,8 @@ def calibrate_session(
                     # The concentric target's few named points are noisier than the view's
                     # pose from the intrinsics adjustment (every ring edge and line point):
                     # the hand-eye sees the features where that pose puts them, with that
-                    # pose's covariance (their PnP residuals are nil).
+                    # pose's covariance (their PnP residuals are nil). Where the adjustment
+                    # gave no covariance the detected points stay, for honest PnP residuals.
                     px = project_target(camera, intr_pose[f.id], obs.points_target)
                     pose_cov = intr_pose_cov[f.id]
                 views.append(
