@@ -35,15 +35,19 @@ import time
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from metrology.measure import measure_cloud
 from metrology.uncertainty import measurement_uncertainties
 from scanner.app import stages
 from scanner.core.config import resolve_config
+from scanner.core.conventions import invert_transform
+from scanner.formats.calibration_file import read_calibration
 from scanner.scanning.geometry import scan_geometry_of
 from scanner.virtual_cell import load_cell
 from scanner.virtual_cell.cell import CellConfig
 from scanner.virtual_cell.random_cell import randomised_cell
+from scanner.virtual_cell.truth import read_truth
 
 #: The plan's characteristics whose truth is the cell's geometry (plan nominal; flatness 0).
 CHARACTERISTICS = ("sphere spacing", "sphere_1 diameter", "sphere_2 diameter", "plate flatness")
@@ -74,6 +78,38 @@ def sensor_acceptance(cell: CellConfig, seed: int, folder: Path) -> dict[str, fl
     shutil.rmtree(sim / "sweep", ignore_errors=True)
     cached.write_text(json.dumps(figures, indent=1))
     return figures
+
+
+def repeatability_against_truth(folder: Path) -> dict[str, float] | None:
+    """The calibration's stated robot repeatability beside the misses the simulator drew.
+
+    Both are one sigma per axis. The drawn figure is the RMS, over the calibration session's
+    posed frames and the three axes, of the reported flange pose's miss ``inv(reported) @ true``
+    (its translation in mm, its rotation vector in deg), from ``sim/truth.json``; the stated one
+    is ``quality.hand_eye.robot_repeatability`` of ``cal.json``. None where either is missing.
+    """
+    if not (folder / "cal.json").is_file() or not (folder / "sim" / "truth.json").is_file():
+        return None
+    hand_eye = read_calibration(folder / "cal.json").quality.record.get("hand_eye") or {}
+    stated = hand_eye.get("robot_repeatability") or {}
+    if "translation_mm" not in stated or "rotation_deg" not in stated:
+        return None
+    session = read_truth(folder / "sim").sessions.get("calibration")
+    misses = [
+        invert_transform(f.base_from_flange_reported) @ f.base_from_flange_true
+        for f in (session.frames if session else [])
+        if f.base_from_flange_reported is not None and f.base_from_flange_true is not None
+    ]
+    if not misses:
+        return None
+    miss = np.asarray(misses)
+    turn_deg = np.degrees(Rotation.from_matrix(miss[:, :3, :3]).as_rotvec())
+    return {
+        "stated_mm": float(stated["translation_mm"]),
+        "drawn_mm": float(np.sqrt(np.mean(miss[:, :3, 3] ** 2))),
+        "stated_deg": float(stated["rotation_deg"]),
+        "drawn_deg": float(np.sqrt(np.mean(turn_deg**2))),
+    }
 
 
 def plan_for(figures: dict[str, float], folder: Path) -> Path:
@@ -155,7 +191,8 @@ def run_seed(seed: int, randomised: bool, work: Path, again: bool = False) -> di
         check=True, capture_output=True,
     )  # fmt: skip
     seconds.update(measure=t4 - t3, uncertainty=t6 - t5, command=time.perf_counter() - t7)
-    result = {"seed": seed, "kind": kind, "rows": rows, "seconds": seconds, "instrument": figures}
+    result = {"seed": seed, "kind": kind, "rows": rows, "seconds": seconds, "instrument": figures,
+              "repeatability": repeatability_against_truth(folder)}  # fmt: skip
     cached.write_text(json.dumps(result, indent=1))
     return result
 
@@ -202,7 +239,26 @@ def summarise(results: list[dict]) -> str:
         )
         + f"; {len(results)} seeds, {platform.node()} ({platform.machine()})."
     )
+    rep = [r["repeatability"] for r in results if r.get("repeatability")]
+    if rep:
+        lines.append("")
+        lines.append(
+            "Robot repeatability stated by the calibration / drawn by the simulator (one sigma "
+            f"per axis, {len(rep)} seeds): translation {_ratios(rep, 'mm')}, "
+            f"rotation {_ratios(rep, 'deg')}."
+        )
     return "\n".join(lines)
+
+
+def _ratios(rep: list[dict[str, float]], unit: str) -> str:
+    """Median (range) of stated / drawn, and the median figures themselves."""
+    ratio = np.array([r[f"stated_{unit}"] / r[f"drawn_{unit}"] for r in rep])
+    stated = np.median([r[f"stated_{unit}"] for r in rep])
+    drawn = np.median([r[f"drawn_{unit}"] for r in rep])
+    return (
+        f"median {np.median(ratio):.2f}x ({ratio.min():.2f}-{ratio.max():.2f}x; "
+        f"median {stated:.4f} against {drawn:.4f} {unit})"
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -220,7 +276,10 @@ def main(argv: list[str] | None = None) -> int:
     results = []
     if args.report:
         for path in sorted(args.work.glob(f"{kind}-*/result.json")):
-            results.append(json.loads(path.read_text()))
+            result = json.loads(path.read_text())
+            if result.get("repeatability") is None:  # cached before it was recorded
+                result["repeatability"] = repeatability_against_truth(path.parent)
+            results.append(result)
     else:
         for seed in range(args.first_seed, args.first_seed + args.seeds):
             t0 = time.perf_counter()

@@ -372,9 +372,11 @@ def adjustment_covariances(
         :data:`PARAM_NAMES`, marginal over the views' poses (held terms: zero rows and
         columns).
     poses : list of ndarray, shape (6, 6)
-        Each view's pose (rotation vector rad, translation mm) given the intrinsics: its
-        own features' noise, which differs from view to view; what the intrinsics' error
-        adds is common to the views and is in ``intrinsics``.
+        Each view's pose (rotation vector rad, translation mm) given the intrinsics: what
+        its own features' noise leaves, through that view's geometry (distance, tilt, how
+        much of the target it sees). The intrinsics' error moves the poses too, correlated
+        between the views and through each view's geometry differently; that part is left
+        out here (it is in ``intrinsics`` and what propagates from it).
 
     Raises
     ------
