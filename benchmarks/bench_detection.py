@@ -230,7 +230,6 @@ def main(argv: list[str] | None = None) -> int:
                 f"p95 {np.percentile(errs, 95):.3f} px, max {errs.max():.3f} px.\n"
             )
         print(rate_table(good) + "\n")
-    empty = [run_view(v) for v in draw_views(args.empty, args.seed, has_target=False)]
     false_pos = sum(o.detected for o in empty)
     kinds = Counter(o.view.conditions.surroundings for o in empty)
     print(

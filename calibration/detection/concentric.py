@@ -27,9 +27,10 @@ The pipeline, every geometric fact coming from the target spec:
    puts it, must be dark at exactly one of them; A is that end, and C follows from z out of
    the face. Any doubt gives ``ok=False`` with a reason.
 
-The less usual paths (rays from ring 1, the joint fit, bundles) are later passes over the
-closing scales, run only where the first refused the view, so that a view the first pass
-measures is never exposed to their weaker checks.
+The less usual paths (rays from ring 1, the joint fit, bundles, a centre moved off the
+crossings of the Hough lines) are later passes over the closing scales, run only where the
+first refused the view, so that a view the first pass measures is never exposed to their
+weaker checks.
 
 Steps 1-3 are in :mod:`calibration.detection.concentric_rays`, 4-5 in
 :mod:`calibration.detection.concentric_rings` (the diameters in
@@ -166,9 +167,13 @@ class _ScaleState:
     """If > 0, the chosen centre's rays are sampled as bundles of parallel rays
     (:data:`BUNDLE_STEP_PX`) with this threshold: the fourth and fifth passes, for views the
     others refused."""
-    centres: dict[tuple[int, bool], _Centre | None] = field(default_factory=dict)
-    """The candidate centre each scale (closing kernel, px; rays from ring 1 or not) chose,
-    None for none: the same in every pass that labels the candidates' rays alike."""
+    climb: bool = False
+    """The chosen candidate centre is moved to where its rays find the most ring crossings
+    (:func:`_climbed_centre`): the last pass, for views all others refused."""
+    centres: dict[tuple[int, bool, bool], _Centre | None] = field(default_factory=dict)
+    """The candidate centre each scale (closing kernel, px; rays from ring 1 or not; climbed
+    or not) chose, None for none: the same in every pass that labels the candidates' rays
+    alike."""
     coarse: dict[int, _CoarseMaps] = field(default_factory=dict)
     """The coarse maps of each scale (closing kernel, px) the first pass made: the later
     passes label other rays on the same maps."""
@@ -218,16 +223,21 @@ def detect_concentric(
     # (on an affine model, which a finer scale's own conics beat where they are there).
     # Crossings a single ray misses (a faint line in paper grain) may show in the mean of
     # a bundle of parallel rays: a fourth pass at the usual threshold, a fifth at one for the
-    # bundle's lower noise (BUNDLE_Z_LINE). Last, because a bundle blurs a steep target's
-    # close rings: with bundles in the first pass, two views it measures were lost.
-    for ring0_hidden, joint, bundle_z_line in (
-        (False, False, 0.0),
-        (True, False, 0.0),
-        (False, True, 0.0),
-        (False, False, Z_LINE),
-        (False, False, BUNDLE_Z_LINE),
+    # bundle's lower noise (BUNDLE_Z_LINE). Late, because a bundle blurs a steep target's
+    # close rings: with bundles in the first pass, two views it measures were lost. On a
+    # steep target the diameter along the short axis may be too short for a Hough line of
+    # its own, and no crossing of two lines is at O: the last pass climbs from the chosen
+    # crossing to where the rays find the most rings.
+    for ring0_hidden, joint, bundle_z_line, climb in (
+        (False, False, 0.0, False),
+        (True, False, 0.0, False),
+        (False, True, 0.0, False),
+        (False, False, Z_LINE, False),
+        (False, False, BUNDLE_Z_LINE, False),
+        (False, False, 0.0, True),
     ):
         state.ring0_hidden, state.joint, state.bundle_z_line = ring0_hidden, joint, bundle_z_line
+        state.climb = climb
         for kernel in kernels:
             state.progress = 0
             obs = _detect_with_kernel(img, target, s, kernel, size, state)
@@ -240,6 +250,8 @@ def detect_concentric(
                     obs = replace(obs, reason=f"{obs.reason} (rings fitted together)")
                 elif bundle_z_line:
                     obs = replace(obs, reason=f"{obs.reason} (rays in bundles)")
+                elif climb:
+                    obs = replace(obs, reason=f"{obs.reason} (centre moved to the most rings)")
                 refused, furthest = obs, state.progress
     return refused  # type: ignore[return-value]
 
@@ -408,6 +420,50 @@ def _best_centre(
     return best[1], best[2], best[3]
 
 
+def _climbed_centre(
+    z_rays: NDArray, centre: _Centre, radii: NDArray, step_px: float, ring0_hidden: bool
+) -> _Centre:
+    """A candidate centre moved to where its rays find the most ring crossings in order.
+
+    A pattern search on :func:`_label_rays`'s support: the eight neighbours ``step_px`` away
+    are tried, the best one taken while it beats the centre, the step halved when none does,
+    down to 1 px. The support only grows, so a crossing of clutter lines stays where it is
+    or moves onto rings; the lines and the diameters' directions stay the Hough lines'.
+
+    Parameters
+    ----------
+    z_rays : ndarray, shape (H, W)
+        Darkness over its local threshold, -1 where the print is hidden.
+    centre : tuple
+        The chosen candidate (:data:`_Centre`).
+    radii : ndarray, shape (K,)
+        The spec's ring radii, mm.
+    step_px : float
+        The first step: the coarse stage's closing kernel, the scale it looks at.
+    ring0_hidden : bool
+        See :func:`~calibration.detection.ray_kernels.label_rays`.
+    """
+    c, pair, axis_angles = centre
+    h, w = z_rays.shape
+
+    def support(p: NDArray) -> int:
+        if not (0 <= p[0] < w and 0 <= p[1] < h):
+            return -1
+        return _label_rays(z_rays, p, radii, Z_LINE, axis_angles, ring0_hidden=ring0_hidden)[1]
+
+    best = support(c)
+    moves = [np.array([dx, dy], float) for dx in (-1, 0, 1) for dy in (-1, 0, 1) if dx or dy]
+    step = float(step_px)
+    while step >= 1.0:
+        scored = [(support(c + step * m), i) for i, m in enumerate(moves)]
+        top, i = max(scored)
+        if top > best:
+            best, c = top, c + step * moves[i]
+        else:
+            step /= 2.0
+    return c, pair, axis_angles
+
+
 def _detect_with_kernel(
     img: NDArray,
     target: ConcentricCirclesTarget,
@@ -433,9 +489,21 @@ def _detect_with_kernel(
 
     state.progress = 1
     # The candidates' rays are labelled alike in every pass with the same ``ring0_hidden``.
-    key = (kernel, state.ring0_hidden)
+    key = (kernel, state.ring0_hidden, False)
     if key not in state.centres:
         state.centres[key] = _best_centre(z_rays, lines, radii, size, state.ring0_hidden)
+    if state.climb:
+        start, key = state.centres[key], (kernel, state.ring0_hidden, True)
+        if key not in state.centres:
+            state.centres[key] = (
+                None
+                if start is None
+                else _climbed_centre(z_rays, start, radii, kernel, state.ring0_hidden)
+            )
+        climbed = state.centres[key]
+        if start is None or climbed is None or np.array_equal(climbed[0], start[0]):
+            # (the first pass measured this centre already)
+            return TargetObservation.failed("the candidate centre did not move", size, KIND)
     chosen = state.centres[key]
     if chosen is None:
         return TargetObservation.failed(

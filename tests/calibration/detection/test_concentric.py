@@ -1,3 +1,4 @@
+import cv2
 import numpy as np
 import pytest
 
@@ -145,17 +146,19 @@ def test_no_target_gives_a_reason():
 
 
 def test_of_several_scales_the_refusal_that_got_furthest_is_reported(monkeypatch):
-    # each closing kernel fails at another stage, in all five passes (the second with rays
-    # that may start at ring 1, the third with rings that may be fitted together, the last
-    # two with rays in bundles): the user sees the most telling reason
+    # each closing kernel fails at another stage, in all six passes (the second with rays
+    # that may start at ring 1, the third with rings that may be fitted together, the fourth
+    # and fifth with rays in bundles, the last from a centre moved to the most rings): the
+    # user sees the most telling reason
     # (two closing kernels for a 400 px image)
     stages = iter([(1, "no ring pencil found: 1 rings fitted"), (5, "diameter line not printed"),
                    (3, "too oblique"), (5, "as far, second"), (1, "third"), (2, "third, too"),
-                   (4, "fourth"), (5, "fourth, as far"), (1, "fifth"), (5, "fifth, as far")])  # fmt: skip
+                   (4, "fourth"), (5, "fourth, as far"), (1, "fifth"), (5, "fifth, as far"),
+                   (2, "sixth"), (5, "sixth, as far")])  # fmt: skip
     passes = []
 
     def fake(img, target, s, kernel, size, state):
-        passes.append((state.ring0_hidden, state.joint, state.bundle_z_line))
+        passes.append((state.ring0_hidden, state.joint, state.bundle_z_line, state.climb))
         state.progress, reason = next(stages)
         return TargetObservation.failed(reason, size, "concentric_circles")
 
@@ -163,20 +166,59 @@ def test_of_several_scales_the_refusal_that_got_furthest_is_reported(monkeypatch
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert not obs
     assert obs.reason == "diameter line not printed"
-    single = [(False, False, 0.0), (True, False, 0.0), (False, True, 0.0)]
-    bundles = [(False, False, concentric.Z_LINE), (False, False, concentric.BUNDLE_Z_LINE)]
-    assert passes == [p for p in single + bundles for _ in range(2)]
+    single = [(False, False, 0.0, False), (True, False, 0.0, False), (False, True, 0.0, False)]
+    bundles = [
+        (False, False, concentric.Z_LINE, False),
+        (False, False, concentric.BUNDLE_Z_LINE, False),
+    ]
+    climbed = [(False, False, 0.0, True)]
+    assert passes == [p for p in single + bundles + climbed for _ in range(2)]
     # a reason of a later pass that got further says where it comes from
     firsts = [(1, "first"), (2, "first, too")]
-    stages = iter(firsts + [(3, "second"), (6, "marker not found")] + [(1, "later")] * 6)
+    stages = iter(firsts + [(3, "second"), (6, "marker not found")] + [(1, "later")] * 8)
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert obs.reason == "marker not found (rays labelled from ring 1)"
-    stages = iter(firsts + [(2, "second"), (1, "second, too"), (4, "too oblique")] + [(1, "")] * 5)
+    stages = iter(firsts + [(2, "second"), (1, "second, too"), (4, "too oblique")] + [(1, "")] * 7)
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert obs.reason == "too oblique (rings fitted together)"
-    stages = iter(firsts + [(1, "later")] * 7 + [(3, "1 rings measured")])
+    stages = iter(firsts + [(1, "later")] * 7 + [(3, "1 rings measured")] + [(1, "")] * 2)
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert obs.reason == "1 rings measured (rays in bundles)"
+    stages = iter(firsts + [(1, "later")] * 9 + [(4, "2 rings measured")])
+    obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
+    assert obs.reason == "2 rings measured (centre moved to the most rings)"
+
+
+def test_a_centre_off_the_rings_climbs_to_them_and_one_in_clutter_stays():
+    # The last pass's candidate: on a steep target no crossing of two Hough lines may be at
+    # O. A map in the coarse stage's units (a printed line over Z_LINE), one diameter only.
+    rng = np.random.default_rng(23)
+    radii = np.array([10.0, 20.0, 30.0, 40.0])
+    z = np.zeros((300, 400))
+    for r in 2.2 * radii:
+        cv2.ellipse(z, (190, 160), (int(r), int(0.45 * r)), 20.0, 0.0, 360.0, 1.0, 2)
+    cv2.line(z, (0, 91), (399, 237), 1.0, 2)  # the long diameter, through (190, 160)
+    # (never negative: that marks hidden print, where rays stop)
+    z = np.maximum(3.0 * cv2.GaussianBlur(z, (0, 0), 1.0) + rng.normal(0.0, 0.15, z.shape), 0)
+    axis_angles = [np.radians(a) for a in (20.0, 200.0, 110.0, 290.0)]
+    # 8 px off the diameter, as a crossing of it with a clutter line would be
+    start = (np.array([187.0, 168.0]), (np.zeros(3), np.zeros(3)), axis_angles)
+    c, _, angles = concentric._climbed_centre(z, start, radii, 8.0, False)
+    assert angles == axis_angles
+    # Onto the diameter, inside the innermost ring (22 px along it): along the diameter a
+    # shift is nearly a projectivity of the radii, and the ring conics' pencil pins O later.
+    along = np.array([np.cos(np.radians(20.0)), np.sin(np.radians(20.0))])
+    off = c - [190.0, 160.0]
+    assert abs(off @ [-along[1], along[0]]) < 2.0 and abs(off @ along) < 11.0, c
+
+    def support(p):
+        return concentric._label_rays(z, p, radii, concentric.Z_LINE, axis_angles)[1]
+
+    assert support(c) > 1.3 * support(start[0]) > 0
+    # noise alone: no ring crossings anywhere near, the candidate stays where it was
+    noise = np.maximum(rng.normal(0.0, 0.15, z.shape), 0.0)
+    c, _, _ = concentric._climbed_centre(noise, start, radii, 8.0, False)
+    np.testing.assert_array_equal(c, start[0])
 
 
 def test_the_first_scales_darkness_floor_holds_at_the_smaller_scales(monkeypatch):
