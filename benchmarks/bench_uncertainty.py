@@ -19,7 +19,9 @@ length) the true error is the measured value minus the cell's exact geometry (th
 perfectly flat). Reported per characteristic: the share of cases with ``|error| <= U`` (the
 aim 95 %, accepted 90-99 %), the 95th percentile of ``|error|``, the mean U and its ratio to
 that percentile (at most 2: honest, not inflated), and what the propagation costs in
-``scanner measure``'s time. Every seed's result is cached under ``--work`` (resumable).
+``scanner measure``'s time. Last, the robot's repeatability each calibration stated against
+the misses the simulator drew (:func:`repeatability_against_truth`). Every seed's result is
+cached under ``--work`` (resumable).
 """
 
 from __future__ import annotations
@@ -127,6 +129,15 @@ def plan_for(figures: dict[str, float], folder: Path) -> Path:
     return path
 
 
+def cached_result(path: Path) -> dict:
+    """A seed's cached ``result.json``, with the repeatability beside the truth filled in
+    where it was cached before that was recorded."""
+    result = json.loads(path.read_text())
+    if result.get("repeatability") is None:
+        result["repeatability"] = repeatability_against_truth(path.parent)
+    return result
+
+
 def run_seed(seed: int, randomised: bool, work: Path, again: bool = False) -> dict:
     """One independent job; returns (and caches) its errors and uncertainties.
 
@@ -137,7 +148,7 @@ def run_seed(seed: int, randomised: bool, work: Path, again: bool = False) -> di
     folder = work / f"{kind}-{seed:03d}"
     cached = folder / "result.json"
     if cached.is_file() and not again:
-        return json.loads(cached.read_text())
+        return cached_result(cached)
     sim = folder / "sim"
     again = again and (folder / "cloud.ply").is_file() and (sim / "check").is_dir()
     seconds = json.loads(cached.read_text())["seconds"] if again and cached.is_file() else {}
@@ -276,10 +287,7 @@ def main(argv: list[str] | None = None) -> int:
     results = []
     if args.report:
         for path in sorted(args.work.glob(f"{kind}-*/result.json")):
-            result = json.loads(path.read_text())
-            if result.get("repeatability") is None:  # cached before it was recorded
-                result["repeatability"] = repeatability_against_truth(path.parent)
-            results.append(result)
+            results.append(cached_result(path))
     else:
         for seed in range(args.first_seed, args.first_seed + args.seeds):
             t0 = time.perf_counter()
