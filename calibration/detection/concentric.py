@@ -114,8 +114,8 @@ KIND = "concentric_circles"
 #: may be where it is over this (the Hough mask and the rays' crossings alike).
 Z_LINE = 1.0
 
-#: The fourth and fifth passes sample the chosen centre's rays as bundles of five parallel rays this far
-#: apart (px), each sample their mean but for the darkest and the lightest
+#: The fourth and fifth passes sample the chosen centre's rays as bundles of five parallel rays
+#: this far apart (px), each sample their mean but for the darkest and the lightest
 #: (:func:`~calibration.detection.ray_kernels.label_rays`): a line too faint for one ray's
 #: samples (grain, a thin print) adds up along its ring.
 BUNDLE_STEP_PX = 2.0
@@ -505,8 +505,8 @@ def _detect_with_kernel(
                 else _climbed_centre(z_rays, start, radii, kernel, state.ring0_hidden)
             )
         climbed = state.centres[key]
-        if start is None or climbed is None or np.array_equal(climbed[0], start[0]):
-            # (the first pass measured this centre already)
+        if climbed is None or np.array_equal(climbed[0], start[0]):
+            # (no start gives no climb; the first pass measured an unmoved centre already)
             return TargetObservation.failed("the candidate centre did not move", size, KIND)
     chosen = state.centres[key]
     if chosen is None:

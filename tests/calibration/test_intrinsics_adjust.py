@@ -4,7 +4,7 @@ from scipy.spatial.transform import Rotation
 
 from calibration.extrinsics import pose_covariance_as_turns
 from calibration.intrinsics_adjust import PARAM_NAMES, _adjust, adjustment_covariances
-from tests.calibration.test_intrinsics import DIST_TRUE, K_TRUE, poses, synthetic_observation
+from tests.calibration._observations import DIST_TRUE, K_TRUE, poses, synthetic_observation
 
 NOISE_PX = 0.3
 

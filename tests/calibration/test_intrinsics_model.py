@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 from calibration import intrinsics_model
 from calibration.intrinsics import IntrinsicsResult, calibrate_intrinsics
 from scanner.core.conventions import make_transform
-from tests.calibration.test_intrinsics import (
+from tests.calibration._observations import (
     DIST_TRUE,
     K_TRUE,
     SIZE,

@@ -15,7 +15,7 @@ from calibration.symmetry import relabel, resolve_quarter_turns, turn
 from scanner.core.conventions import angle_between_rotations_deg, make_transform
 from scanner.core.targets import ConcentricCirclesTarget, OrientationMarker
 from scanner.formats.session import Frame, Session
-from tests.calibration.test_intrinsics import (
+from tests.calibration._observations import (
     DIST_TRUE,
     K_TRUE,
     RADII,
