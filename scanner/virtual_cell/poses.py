@@ -236,8 +236,9 @@ def aimed_view(
         c_t = make_transform(rot, q - rot @ point_t)
         needed = [centre, point_t]
         if isinstance(spec, ConcentricCirclesTarget):
-            # The operator keeps the orientation disc in view: without it the target cannot
-            # be labelled, and the paper's hand-eye needs labelled views of O, A and C.
+            # The operator keeps the orientation disc in view: without it a view is labelled
+            # only up to the quarter turns, and the paper's hand-eye needs views of O, A and C
+            # labelled by the disc.
             mx, my = spec.orientation_marker.center_mm
             needed.append(np.array([mx, my, 0.0]))
         if ring_crossings_in_view:
