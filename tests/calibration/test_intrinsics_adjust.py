@@ -51,9 +51,12 @@ def test_with_the_camera_free_the_marginal_and_intrinsics_covariances_match_repe
     rng = np.random.default_rng(19)
     views = poses(3, rng)
     given, marginal, intrinsics = zip(*(_free_camera_chi2(views, rng) for _ in range(40)))
-    # 120 pose draws, 6 degrees of freedom (measured 6.03; 5.27-6.36 over seeds 0-3); 40
-    # intrinsics draws of 9, standard error 0.67 (8.50; 8.39-9.82)
-    assert 5.0 < np.mean(marginal) < 7.0, np.mean(marginal)
+    # 120 pose draws, 6 degrees of freedom (measured 6.03; 5.27-6.36 over seeds 0-3; the
+    # three views of one adjustment share its camera's error, so the spread is wider than
+    # 120 independent draws' 0.32); 40 intrinsics draws of 9, standard error 0.67 (8.50;
+    # 8.39-9.82). The rotation-vector covariance taken for turns gives 206; the coordinates'
+    # spreads, which caught that above, are too noisy here (0.72-1.16 over seeds 0-3 and 19).
+    assert 4.5 < np.mean(marginal) < 7.5, np.mean(marginal)
     assert 7.0 < np.mean(intrinsics) < 11.0, np.mean(intrinsics)
     # what the given-camera covariance leaves out dominates with three views (mean 3e5)
     assert np.mean(given) > 100 * np.mean(marginal)
@@ -71,6 +74,7 @@ def _free_camera_chi2(
     intrinsics_cov, given_camera = adjustment_covariances(prob, x, res, ())
     normal, _ = prob.normal_equations(x, res, np.ones(len(res)))
     full = np.linalg.inv(normal) * float(np.sum(res**2) / (len(res) - x.size))
+    assert np.allclose(full[:9, :9], intrinsics_cov)  # the library's marginal, as here
     truth = np.r_[K_TRUE[0, 0], K_TRUE[1, 1], K_TRUE[0, 2], K_TRUE[1, 2], DIST_TRUE]
     given, marginal = [], []
     for v, (T, p) in enumerate(zip(views, x[9:].reshape(-1, 6))):
