@@ -18,8 +18,10 @@ For each characteristic (sphere spacing, both sphere diameters, the plate's flat
 length) the true error is the measured value minus the cell's exact geometry (the plate is
 perfectly flat). Reported per characteristic: the share of cases with ``|error| <= U`` (the
 aim 95 %, accepted 90-99 %), the 95th percentile of ``|error|``, the mean U and its ratio to
-that percentile (at most 2: honest, not inflated), and what the propagation costs in
-``scanner measure``'s time. Last, the robot's repeatability each calibration stated against
+that percentile (at most 2: honest, not inflated), the median U's ratio (one sensor with a
+large U moves the mean), the RMS of ``error / u`` (about 1 for an honest u of a symmetric
+error; not for the flatness, whose U is a one-sided bound on a range), and what the
+propagation costs in ``scanner measure``'s time. Last, the robot's repeatability each calibration stated against
 the misses the simulator drew (:func:`repeatability_against_truth`). Every seed's result is
 cached under ``--work`` (resumable).
 """
@@ -211,8 +213,8 @@ def run_seed(seed: int, randomised: bool, work: Path, again: bool = False) -> di
 def summarise(results: list[dict]) -> str:
     lines = [
         "| characteristic | cases | within U | p95 of abs(error), mm | mean U, mm "
-        "| mean U / p95 | largest share of u² |",
-        "|---|---|---|---|---|---|---|",
+        "| mean U / p95 | median U / p95 | RMS of error / u | largest share of u² |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     names = list(dict.fromkeys(r["name"] for res in results for r in res["rows"]))
     for name in names:
@@ -221,6 +223,8 @@ def summarise(results: list[dict]) -> str:
             continue
         err = np.abs([r["error"] for r in rows])
         big_u = np.array([r["U"] for r in rows])
+        # about 1 where u is honest, below 1 where it overstates, above where it understates
+        z_rms = float(np.sqrt(np.mean([(r["error"] / r["u"]) ** 2 for r in rows])))
         p95 = float(np.quantile(err, 0.95))
         shares: dict[str, float] = {}
         for r in rows:
@@ -229,7 +233,8 @@ def summarise(results: list[dict]) -> str:
         top = max(shares, key=lambda k: shares[k])
         lines.append(
             f"| {name} | {len(rows)} | {np.mean(err <= big_u) * 100:.0f} % | {p95:.4f} | "
-            f"{big_u.mean():.4f} | {big_u.mean() / p95:.2f} | {top} "
+            f"{big_u.mean():.4f} | {big_u.mean() / p95:.2f} | {np.median(big_u) / p95:.2f} | "
+            f"{z_rms:.2f} | {top} "
             f"({shares[top] / len(rows) * 100:.0f} %) |"
         )
     unc = np.array([r["seconds"]["uncertainty"] for r in results])
