@@ -103,6 +103,33 @@ def test_the_robot_share_matches_a_robot_that_misses_its_stops(plan):
     np.testing.assert_allclose(per_stop[:2], sd[:2], rtol=0.4)  # not counted twice
 
 
+@pytest.mark.slow
+def test_the_robot_share_from_a_sample_is_all_points_share(plan):
+    # Each stop moves by its own miss: a sample that gives a stop a random count of points
+    # overstates the share (500 random points, as before: +8 % and +11 % here, which fails
+    # this; +21-57 % on a randomised cell's spheres). The default's even sample gives all
+    # points' share (within 2 % here).
+    sweep = ball_sweep()
+    sweep.calibration.covariance = _covariance(robot_mm=0.02, robot_deg=0.005)
+    report = measure_cloud(
+        sweep.points(np.random.default_rng(2), robot_mm=0.02, robot_deg=0.005), plan
+    )
+    assert all(len(f.inlier_indices) > 5000 for f in report.features if f.ok)  # sampled
+
+    def robot(**kw) -> np.ndarray:
+        shares = []
+        for seed in range(1, 5):  # 4 x 128 draws: each mean within about 3 %
+            u = measurement_uncertainties(
+                report, sweep.geometry(), UncertaintyConfig(seed=seed, robot_draws=128, **kw)
+            )
+            shares.append(
+                [next(c.u for c in x.budget if c.source == "robot repeatability") for x in u]
+            )
+        return np.mean(shares, axis=0)
+
+    np.testing.assert_allclose(robot(), robot(robot_points=10**9), rtol=0.08)
+
+
 def test_the_linearised_fits_give_the_budget_the_refits_give(plan):
     sweep = ball_sweep()
     sweep.calibration.covariance = _covariance(robot_mm=0.02, robot_deg=0.005)
