@@ -20,7 +20,8 @@ perfectly flat). Reported per characteristic: the share of cases with ``|error| 
 aim 95 %, accepted 90-99 %), the 95th percentile of ``|error|``, the mean U and its ratio to
 that percentile (at most 2: honest, not inflated), the median U's ratio (one sensor with a
 large U moves the mean), the RMS of ``error / u`` (about 1 for an honest u of a symmetric
-error; not for the flatness, whose U is a one-sided bound on a range), and what the
+error; not for the flatness, whose U is a one-sided bound on a range), the robot share
+against the part of the error the drawn misses made (:func:`robot_parts`), and what the
 propagation costs in ``scanner measure``'s time. Last, the robot's repeatability each calibration stated against
 the misses the simulator drew (:func:`repeatability_against_truth`). Every seed's result is
 cached under ``--work`` (resumable).
@@ -47,7 +48,9 @@ from scanner.app import stages
 from scanner.core.config import resolve_config
 from scanner.core.conventions import invert_transform
 from scanner.formats.calibration_file import read_calibration
-from scanner.scanning.geometry import scan_geometry_of
+from scanner.formats.clouds import cloud_arrays, read_cloud, read_ply_metadata
+from scanner.formats.session import read_session
+from scanner.scanning.geometry import scan_geometry_of, sweep_numbering
 from scanner.virtual_cell import load_cell
 from scanner.virtual_cell.cell import CellConfig
 from scanner.virtual_cell.random_cell import randomised_cell
@@ -116,6 +119,43 @@ def repeatability_against_truth(folder: Path) -> dict[str, float] | None:
     }
 
 
+def robot_parts(folder: Path, plan: Path) -> dict[str, float]:
+    """What the robot's misses the simulator drew in the sweep did to each characteristic.
+
+    Each point is moved from its stop's reported pose to the pose the robot actually stood at
+    (``true @ inv(reported)``, from ``sim/truth.json``); the characteristic measured on the
+    cloud as written minus on the moved cloud is the misses' part of its error: one draw of
+    what the budget's "robot repeatability" share states the spread of.
+    """
+    cloud = folder / "cloud.ply"
+    arrays = cloud_arrays(read_cloud(cloud))
+    points = np.asarray(arrays["positions"], dtype=np.float64)
+    sessions = [read_session(s) for s in read_ply_metadata(cloud)["sessions"]]
+    _, index = sweep_numbering(sessions)
+    truth = read_truth(folder / "sim").sessions["sweep"]
+    fix = np.tile(np.eye(4), (len(index), 1, 1))
+    for (_, frame_id), row in index.items():
+        f = truth.frame(frame_id)
+        if f.base_from_flange_true is not None and f.base_from_flange_reported is not None:
+            fix[row] = f.base_from_flange_true @ invert_transform(f.base_from_flange_reported)
+    rows = np.array(
+        [
+            index[(int(s), int(f))]
+            for s, f in zip(arrays["sweep_id"].ravel(), arrays["frame_id"].ravel())
+        ]
+    )
+    moved = np.einsum("nij,nj->ni", fix[rows, :3, :3], points) + fix[rows, :3, 3]
+    written = {m.spec.name: m.row.actual for m in measure_cloud(points, plan).measurements}
+    true_stops = {m.spec.name: m.row.actual for m in measure_cloud(moved, plan).measurements}
+    return {
+        n: float(written[n] - true_stops[n])
+        for n in CHARACTERISTICS
+        if n != "plate flatness"  # a range: no symmetric part to set against a u
+        and written.get(n) is not None
+        and true_stops.get(n) is not None
+    }
+
+
 def plan_for(figures: dict[str, float], folder: Path) -> Path:
     """The shipped plan with its ``instrument`` line set to a sensor's PS and SD."""
     text = resolve_config(PLAN, "plans").read_text()
@@ -180,6 +220,7 @@ def run_seed(seed: int, randomised: bool, work: Path, again: bool = False) -> di
     measurement_uncertainties(report, geometry)
     t6 = time.perf_counter()
     ef = stages.check(sim / "check", folder / "cal.json", folder / "ef.json", report=None)
+    parts = robot_parts(folder, plan)
     rows = []
     for name, value, error in [
         (m.spec.name, m, m.row.deviation)
@@ -194,6 +235,7 @@ def run_seed(seed: int, randomised: bool, work: Path, again: bool = False) -> di
                 "u": None if unc is None else unc.u,
                 "U": None if unc is None else unc.U,
                 "budget": None if unc is None else {c.source: c.u for c in unc.budget},
+                "robot_part": parts.get(name),
             }
         )
     # the user's figure: the whole `scanner measure` command (start-up, reading, the reports)
@@ -255,6 +297,26 @@ def summarise(results: list[dict]) -> str:
         )
         + f"; {len(results)} seeds, {platform.node()} ({platform.machine()})."
     )
+    parts = []
+    for name in names:
+        pairs = [
+            (r["robot_part"], r["budget"]["robot repeatability"])
+            for res in results
+            for r in res["rows"]
+            if r["name"] == name
+            and r.get("robot_part") is not None
+            and (r["budget"] or {}).get("robot repeatability")
+        ]
+        if pairs:
+            z = np.array([p / u for p, u in pairs])
+            parts.append(f"{name} {np.sqrt(np.mean(z**2)):.2f} ({len(z)})")
+    if parts:
+        lines.append("")
+        lines.append(
+            "The robot share against the part of the error the drawn misses made (the cloud "
+            "moved to the true stops): RMS of part / stated robot u, about 1 where that share "
+            "is honest: " + ", ".join(parts) + "."
+        )
     rep = [r["repeatability"] for r in results if r.get("repeatability")]
     if rep:
         lines.append("")
