@@ -64,7 +64,7 @@ class UncertaintyConfig:
         Monte Carlo draws of the robot's misses (a few ms each: 64 give its u within about
         9 %, one sigma; 16 within 18 %).
     seed : int
-        Seed of both (a report is reproducible).
+        Seed of every draw and sample (a report is reproducible).
     systematic_points : int
         The calibration's share moves the points smoothly: the features are fitted again to
         at most this many of their points, evenly spread over the stops (the noise share
@@ -92,6 +92,11 @@ class UncertaintyConfig:
             raise ValueError(f"uncertainty draws: expected at least 4, got {self.draws}")
         if self.robot_draws < 4:
             raise ValueError(f"robot draws: expected at least 4, got {self.robot_draws}")
+        if min(self.systematic_points, self.robot_points) < 1:
+            raise ValueError(
+                "uncertainty sample sizes: expected at least 1 point, got "
+                f"{self.systematic_points} and {self.robot_points}"
+            )
 
 
 #: Degrees of freedom of each linearised surface (its parameters).
@@ -249,6 +254,8 @@ def measurement_uncertainties(
     """
     config = config or UncertaintyConfig()
     rng = np.random.default_rng(config.seed)
+    # the samples' starts from their own stream: a sample's size leaves the draws as they are
+    sampling = np.random.default_rng([config.seed, 1])
     used = {name for m in report.measurements for name in m.spec.features}
     ok = [f for f in report.features if f.spec.name in used and f.ok]
     feats = _Features(
@@ -295,7 +302,7 @@ def measurement_uncertainties(
     covariance = None if geometry is None else geometry.calibration.covariance
     stops = None if geometry is None else geometry.frame_index
     sample = {
-        n: _even_sample(idx, config.systematic_points, stops, rng)
+        n: _even_sample(idx, config.systematic_points, stops, sampling)
         for n, idx in feats.indices.items()
     }
 
@@ -393,10 +400,10 @@ def measurement_uncertainties(
         # above all points' own, from 500 even ones 8-11 % (256 draws). So a larger even
         # sample: all of a sphere's points on the virtual cells, a table's spread over its
         # stops.
-        robot_idx = {
-            n: _even_sample(feats.indices[n], config.robot_points, stops, rng) for n in names
-        }
-        robot_all = np.concatenate([robot_idx[n] for n in names]) if names else all_idx
+        # (refitted features, without the first-order update, keep the smaller sample)
+        most = config.robot_points if config.linearised else config.systematic_points
+        robot_idx = {n: _even_sample(feats.indices[n], most, stops, sampling) for n in names}
+        robot_all = np.concatenate([robot_idx[n] for n in names] or [np.zeros(0, np.int64)])
         robot_ends = np.cumsum([len(robot_idx[n]) for n in names])[:-1]
         linear_robot = linearised({n: cloud[idx] for n, idx in robot_idx.items()})
 
