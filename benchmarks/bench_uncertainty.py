@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from metrology.measure import measure_cloud
+from metrology.measure import MeasurementReport, measure_cloud
 from metrology.uncertainty import measurement_uncertainties
 from scanner.app import stages
 from scanner.core.config import resolve_config
@@ -50,7 +50,7 @@ from scanner.core.conventions import invert_transform
 from scanner.formats.calibration_file import read_calibration
 from scanner.formats.clouds import cloud_arrays, read_cloud, read_ply_metadata
 from scanner.formats.session import read_session
-from scanner.scanning.geometry import scan_geometry_of, sweep_numbering
+from scanner.scanning.geometry import ScanGeometry, scan_geometry_of, sweep_numbering
 from scanner.virtual_cell import load_cell
 from scanner.virtual_cell.cell import CellConfig
 from scanner.virtual_cell.random_cell import randomised_cell
@@ -119,40 +119,37 @@ def repeatability_against_truth(folder: Path) -> dict[str, float] | None:
     }
 
 
-def robot_parts(folder: Path, plan: Path) -> dict[str, float]:
+def robot_parts(
+    folder: Path, plan: Path, written: MeasurementReport, geometry: ScanGeometry
+) -> dict[str, float]:
     """What the robot's misses the simulator drew in the sweep did to each characteristic.
 
     Each point is moved from its stop's reported pose to the pose the robot actually stood at
     (``true @ inv(reported)``, from ``sim/truth.json``); the characteristic measured on the
-    cloud as written minus on the moved cloud is the misses' part of its error: one draw of
-    what the budget's "robot repeatability" share states the spread of.
+    cloud as written (``written``, its stops in ``geometry``) minus on the moved cloud is the
+    misses' part of its error: one draw of what the budget's "robot repeatability" share
+    states the spread of.
     """
     cloud = folder / "cloud.ply"
-    arrays = cloud_arrays(read_cloud(cloud))
-    points = np.asarray(arrays["positions"], dtype=np.float64)
+    points = np.asarray(cloud_arrays(read_cloud(cloud))["positions"], dtype=np.float64)
     sessions = [read_session(s) for s in read_ply_metadata(cloud)["sessions"]]
-    _, index = sweep_numbering(sessions)
+    _, index = sweep_numbering(sessions)  # the rows of geometry.base_from_flange
     truth = read_truth(folder / "sim").sessions["sweep"]
     fix = np.tile(np.eye(4), (len(index), 1, 1))
     for (_, frame_id), row in index.items():
         f = truth.frame(frame_id)
         if f.base_from_flange_true is not None and f.base_from_flange_reported is not None:
             fix[row] = f.base_from_flange_true @ invert_transform(f.base_from_flange_reported)
-    rows = np.array(
-        [
-            index[(int(s), int(f))]
-            for s, f in zip(arrays["sweep_id"].ravel(), arrays["frame_id"].ravel())
-        ]
-    )
-    moved = np.einsum("nij,nj->ni", fix[rows, :3, :3], points) + fix[rows, :3, 3]
-    written = {m.spec.name: m.row.actual for m in measure_cloud(points, plan).measurements}
-    true_stops = {m.spec.name: m.row.actual for m in measure_cloud(moved, plan).measurements}
+    stop = fix[geometry.frame_index]
+    moved = np.einsum("nij,nj->ni", stop[:, :3, :3], points) + stop[:, :3, 3]
+    before = {m.spec.name: m.row.actual for m in written.measurements}
+    after = {m.spec.name: m.row.actual for m in measure_cloud(moved, plan).measurements}
     return {
-        n: float(written[n] - true_stops[n])
+        n: float(before[n] - after[n])
         for n in CHARACTERISTICS
         if n != "plate flatness"  # a range: no symmetric part to set against a u
-        and written.get(n) is not None
-        and true_stops.get(n) is not None
+        and before.get(n) is not None
+        and after.get(n) is not None
     }
 
 
@@ -220,7 +217,7 @@ def run_seed(seed: int, randomised: bool, work: Path, again: bool = False) -> di
     measurement_uncertainties(report, geometry)
     t6 = time.perf_counter()
     ef = stages.check(sim / "check", folder / "cal.json", folder / "ef.json", report=None)
-    parts = robot_parts(folder, plan)
+    parts = robot_parts(folder, plan, report, geometry)  # type: ignore[arg-type]
     rows = []
     for name, value, error in [
         (m.spec.name, m, m.row.deviation)
