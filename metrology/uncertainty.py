@@ -397,7 +397,7 @@ def measurement_uncertainties(
         st = covariance.robot_translation_mm
         # Misses drawn stop by stop move a small sample's fit by more than the whole's: on a
         # randomised cell's spheres the robot's u from 500 random points came out 21-57 %
-        # above all points' own, from 500 even ones 8-11 % (256 draws). So a larger even
+        # above all points' own (128 draws), from 500 even ones 8-11 % (256). So a larger even
         # sample: all of a sphere's points on the virtual cells, a table's spread over its
         # stops.
         # (refitted features, without the first-order update, keep the smaller sample)
