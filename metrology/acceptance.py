@@ -19,8 +19,8 @@ excluded before the final fit. The artefacts are first isolated in their regions
 (the table, the bar and the plate's edges are not part of them).
 
 The guideline's full test repeats the sphere-bar scan in several positions in the measuring
-volume and takes the worst value; this module evaluates one scan, and a full test runs it on
-each scan (the worst row of each characteristic decides).
+volume and takes the worst value: :func:`run_acceptance` evaluates one scan,
+:func:`full_acceptance` combines the scans (each characteristic decided by its worst scan).
 
 Specification (``configs/plans/acceptance_*.toml``)::
 
@@ -46,9 +46,10 @@ import logging
 import math
 import os
 import time
-from collections.abc import Callable
-from dataclasses import dataclass, field
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -65,8 +66,10 @@ __all__ = [
     "AcceptanceResult",
     "AcceptanceSpec",
     "Characteristic",
+    "FullAcceptance",
     "PlateArtefact",
     "SphereArtefact",
+    "full_acceptance",
     "load_acceptance_spec",
     "run_acceptance",
 ]
@@ -183,21 +186,10 @@ class Characteristic:
         }
 
 
-@dataclass
-class AcceptanceResult(RowCounts):
-    """Characteristics, fits and the per-point deviations of one acceptance scan."""
+class _Judged(RowCounts):
+    """What one scan's result and a full test share: the characteristics and their verdict."""
 
-    spec: AcceptanceSpec
     characteristics: list[Characteristic]
-    fits: dict[str, Fit]
-    points_base: NDArray
-    deviations_mm: NDArray
-    n_excluded: dict[str, int]
-    cloud_path: str | None = None
-    spec_path: str | None = None
-    provenance: dict[str, Any] = field(default_factory=dict)
-    created: datetime = field(default_factory=lambda: datetime.now(timezone.utc))
-    seconds: float = 0.0
 
     @property
     def rows(self) -> list[ToleranceRow]:
@@ -221,31 +213,57 @@ class AcceptanceResult(RowCounts):
             f"failed ({', '.join(parts)})"
         )
 
-    def to_json(self) -> dict[str, Any]:
-        mpe = self.spec.mpe
+    def _verdict_json(
+        self, spec: AcceptanceSpec, spec_path: str | None, created: datetime
+    ) -> dict[str, Any]:
+        """The JSON's head: format, verdict, specification and decisive values."""
         return {
             "format": FORMAT,
             "standard": STANDARD,
-            "created_utc": self.created.astimezone(timezone.utc).isoformat(timespec="seconds"),
+            "created_utc": created.astimezone(timezone.utc).isoformat(timespec="seconds"),
             "result": "pass" if self.passed else "fail",
             "summary": {"passed": self.n_passed, "failed": self.n_failed, "line": self.summary()},
-            "spec": {
-                "name": self.spec.name,
-                "path": self.spec_path,
-                "cell": self.spec.cell,
-                "calibrated_distance_mm": self.spec.calibrated_distance_mm,
-                "calibrated_diameters_mm": {
-                    s.name: s.calibrated_diameter_mm for s in self.spec.spheres
-                },
-                "outlier_fraction": self.spec.outlier_fraction,
-                "mpe_mm": {
-                    "PF": mpe.probing_form_mm,
-                    "PS": mpe.probing_size_mm,
-                    "SD": mpe.sphere_spacing_mm,
-                    "F": mpe.flatness_mm,
-                },
-            },
+            "spec": _spec_json(spec, spec_path),
             "values_mm": {sym: self.worst(sym) for sym in ("PF", "PS", "SD", "F")},
+        }
+
+
+def _spec_json(spec: AcceptanceSpec, spec_path: str | None) -> dict[str, Any]:
+    mpe = spec.mpe
+    return {
+        "name": spec.name,
+        "path": spec_path,
+        "cell": spec.cell,
+        "calibrated_distance_mm": spec.calibrated_distance_mm,
+        "calibrated_diameters_mm": {s.name: s.calibrated_diameter_mm for s in spec.spheres},
+        "outlier_fraction": spec.outlier_fraction,
+        "mpe_mm": {
+            "PF": mpe.probing_form_mm,
+            "PS": mpe.probing_size_mm,
+            "SD": mpe.sphere_spacing_mm,
+            "F": mpe.flatness_mm,
+        },
+    }
+
+
+@dataclass
+class AcceptanceResult(_Judged):
+    """Characteristics, fits and the per-point deviations of one acceptance scan."""
+
+    spec: AcceptanceSpec
+    characteristics: list[Characteristic]
+    fits: dict[str, Fit]
+    points_base: NDArray
+    deviations_mm: NDArray
+    n_excluded: dict[str, int]
+    cloud_path: str | None = None
+    spec_path: str | None = None
+    provenance: dict[str, Any] = field(default_factory=dict)
+    created: datetime = field(default_factory=lambda: datetime.now(timezone.utc))
+    seconds: float = 0.0
+
+    def to_json(self) -> dict[str, Any]:
+        return self._verdict_json(self.spec, self.spec_path, self.created) | {
             "characteristics": [c.to_json() for c in self.characteristics],
             "rows": [r.to_json() for r in self.rows],
             "fits": {name: f.to_json() for name, f in self.fits.items()},
@@ -257,6 +275,82 @@ class AcceptanceResult(RowCounts):
             },
             "seconds": round(self.seconds, 3),
         }
+
+
+@dataclass
+class FullAcceptance(_Judged):
+    """The guideline's full test: the sphere bar and plate scanned in several positions.
+
+    ``characteristics`` holds each characteristic's decisive row, from the scan where it is
+    worst (a scan where it could not be evaluated decides it), its note naming that scan;
+    ``decided_by[i]`` is that scan's index into ``scans``.
+    """
+
+    scans: list[AcceptanceResult]
+    characteristics: list[Characteristic]
+    decided_by: list[int]
+    created: datetime = field(default_factory=lambda: datetime.now(timezone.utc))
+
+    @property
+    def spec(self) -> AcceptanceSpec:
+        return self.scans[0].spec
+
+    @property
+    def seconds(self) -> float:
+        return sum(r.seconds for r in self.scans)
+
+    def to_json(self) -> dict[str, Any]:
+        return self._verdict_json(self.spec, self.scans[0].spec_path, self.created) | {
+            "characteristics": [
+                c.to_json() | {"scan": k} for c, k in zip(self.characteristics, self.decided_by)
+            ],
+            "rows": [r.to_json() for r in self.rows],
+            "scans": [r.to_json() for r in self.scans],
+            "seconds": round(self.seconds, 3),
+        }
+
+
+def _severity(c: Characteristic) -> float:
+    """How strongly a scan's row of a characteristic decides it: an error above all."""
+    return math.inf if c.value_mm is None else abs(c.value_mm)
+
+
+def full_acceptance(scans: Sequence[AcceptanceResult]) -> FullAcceptance:
+    """Combine the scans of one acceptance test (positions of the sphere bar and plate).
+
+    Parameters
+    ----------
+    scans : sequence of AcceptanceResult
+        One per scan, all judged against the same specification.
+
+    Returns
+    -------
+    FullAcceptance
+        Each characteristic (PF and PS per sphere, SD, F) from the scan where its value has
+        the largest magnitude; a scan where it could not be evaluated decides it (error).
+
+    Raises
+    ------
+    ValueError
+        No scans, or scans judged against different specifications.
+    """
+    if not scans:
+        raise ValueError("scans: expected at least one acceptance scan, got none")
+    for k, r in enumerate(scans[1:], 1):
+        if r.spec != scans[0].spec:
+            raise ValueError(
+                f"scans[{k}]: expected the specification of scans[0] ({scans[0].spec.name!r}), "
+                f"got {r.spec.name!r}"
+            )
+    chars, decided = [], []
+    for i in range(len(scans[0].characteristics)):
+        k = max(range(len(scans)), key=lambda j: _severity(scans[j].characteristics[i]))
+        c = scans[k].characteristics[i]
+        cloud = Path(scans[k].cloud_path).name if scans[k].cloud_path else "points in memory"
+        note = f"scan {k + 1} of {len(scans)}, {cloud}" + (f": {c.row.note}" if c.row.note else "")
+        chars.append(replace(c, row=replace(c.row, note=note)))
+        decided.append(k)
+    return FullAcceptance(scans=list(scans), characteristics=chars, decided_by=decided)
 
 
 def _trim_and_refit(

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from metrology.acceptance import FullAcceptance
 from scanner.core.fileio import atomic_output, write_json_atomic
 from scanner.core.tolerance import ToleranceRow, format_value, spreadsheet_safe
 from scanner.formats import html as rep
@@ -280,14 +281,16 @@ def provenance_items(provenance: dict[str, Any], cloud_path: str | None) -> list
     return items
 
 
-def _inputs_section(result: Any, verb: str, extra: list[tuple[str, Any]]) -> str:
+def _inputs_section(
+    result: Any, verb: str, extra: list[tuple[str, Any]], title: str = "Calibration and inputs"
+) -> str:
     """ "Calibration and inputs": where the cloud came from, what else, when and how long."""
     items = provenance_items(result.provenance, result.cloud_path) + extra
     items += [
         (verb, result.created.strftime("%Y-%m-%d %H:%M:%S UTC")),
         ("run time", f"{result.seconds:.2f} s"),
     ]
-    return rep.section("Calibration and inputs", rep.key_value_table(items))
+    return rep.section(title, rep.key_value_table(items))
 
 
 def write_rows_csv(path: str | os.PathLike[str], rows: Sequence[ToleranceRow]) -> None:
@@ -527,20 +530,7 @@ def acceptance_html(result: Any) -> str:
             "|deviation| <= MPE).",
         ),
     ]
-    png, renderer = render_cloud_png(
-        result.points_base, result.deviations_mm, title=f"{cloud_name}: artefact residuals"
-    )
-    limit = deviation_limit(result.deviations_mm)
-    body.append(
-        rep.section(
-            "Scan coloured by residual",
-            rep.figure(
-                png,
-                f"Residuals of the sphere and plane fits (±{limit * 1000:.0f} µm); grey = not "
-                f"part of an artefact. Rendered with {renderer}.",
-            ),
-        )
-    )
+    body.append(rep.section("Scan coloured by residual", _residual_figure(result, cloud_name)))
     residuals = [(name, f.residuals_mm) for name, f in result.fits.items() if f]
     if residuals:
         body.append(
@@ -576,21 +566,14 @@ def acceptance_html(result: Any) -> str:
             "residuals, as the guideline permits, before the final least-squares fit.",
         )
     )
-    mpe = spec.mpe
-    spec_items: list[tuple[str, Any]] = [
-        ("standard", "VDI/VDE 2634 Part 2, one scan (the full test repeats it in several "
-         "positions and keeps the worst values)"),
-        ("specification", result.spec_path or spec.name),
-        ("cell", spec.cell or "-"),
-        ("calibrated centre distance", f"{spec.calibrated_distance_mm:.4f} mm"),
-    ]  # fmt: skip
-    for s in spec.spheres:
-        spec_items.append((f"{s.name} calibrated diameter", f"{s.calibrated_diameter_mm:.4f} mm"))
-    spec_items += [
-        ("MPE PF / PS / SD / F", f"{mpe.probing_form_mm:.4f} / {mpe.probing_size_mm:.4f} / "
-         f"{mpe.sphere_spacing_mm:.4f} / {mpe.flatness_mm:.4f} mm"),
-    ]  # fmt: skip
-    body.append(rep.section("Specification", rep.key_value_table(spec_items)))
+    body.append(
+        _acceptance_spec_section(
+            spec,
+            result.spec_path,
+            "VDI/VDE 2634 Part 2, one scan (the full test repeats it in several positions and "
+            "keeps the worst values: give `scanner acceptance` every scan)",
+        )
+    )
     body.append(_inputs_section(result, "evaluated", []))
     return rep.page(
         f"Acceptance test (VDI/VDE 2634-2) — {spec.name}",
@@ -600,6 +583,86 @@ def acceptance_html(result: Any) -> str:
     )
 
 
+def _residual_figure(scan: Any, cloud_name: str) -> str:
+    """One acceptance scan's points coloured by their artefact's fit residual."""
+    png, renderer = render_cloud_png(
+        scan.points_base, scan.deviations_mm, title=f"{cloud_name}: artefact residuals"
+    )
+    limit = deviation_limit(scan.deviations_mm)
+    return rep.figure(
+        png,
+        f"{cloud_name}: residuals of the sphere and plane fits (±{limit * 1000:.0f} µm); grey = "
+        f"not part of an artefact. Rendered with {renderer}.",
+    )
+
+
+def _acceptance_spec_section(spec: Any, spec_path: str | None, standard: str) -> str:
+    """The "Specification" section of an acceptance report: artefacts and MPEs."""
+    mpe = spec.mpe
+    spec_items: list[tuple[str, Any]] = [
+        ("standard", standard),
+        ("specification", spec_path or spec.name),
+        ("cell", spec.cell or "-"),
+        ("calibrated centre distance", f"{spec.calibrated_distance_mm:.4f} mm"),
+    ]
+    for s in spec.spheres:
+        spec_items.append((f"{s.name} calibrated diameter", f"{s.calibrated_diameter_mm:.4f} mm"))
+    spec_items += [
+        ("MPE PF / PS / SD / F", f"{mpe.probing_form_mm:.4f} / {mpe.probing_size_mm:.4f} / "
+         f"{mpe.sphere_spacing_mm:.4f} / {mpe.flatness_mm:.4f} mm"),
+    ]  # fmt: skip
+    return rep.section("Specification", rep.key_value_table(spec_items))
+
+
+def full_acceptance_html(result: FullAcceptance) -> str:
+    """The complete HTML page of a :class:`~metrology.acceptance.FullAcceptance`: the
+    decisive rows, every scan's values, every scan's residuals."""
+    spec = result.spec
+    n = len(result.scans)
+    names = [Path(r.cloud_path).name if r.cloud_path else "in memory" for r in result.scans]
+    body = [
+        rep.summary_line(result.rows, detail=f"{spec.name}, {n} scans"),
+        rep.section(
+            "Characteristics: the worst scan decides",
+            rep.tolerance_table(result.rows, decimals=4),
+            note="Each row from the scan where its value is largest in magnitude (named in "
+            "the note); a scan where it could not be evaluated decides it. Tolerance column: "
+            "the maximum permissible error (MPE).",
+        ),
+    ]
+    columns = [f"{c.symbol} {c.artefact}" for c in result.scans[0].characteristics]
+    rows = [
+        [f"{k + 1}: {name}", "pass" if r.passed else "fail"]
+        + [None if c.value_mm is None else c.value_mm * 1000 for c in r.characteristics]
+        for k, (r, name) in enumerate(zip(result.scans, names))
+    ]
+    body.append(
+        rep.section(
+            "Every scan",
+            rep.table(["Scan", "Result", *(f"{c} µm" for c in columns)], rows, decimals=1),
+        )
+    )
+    figures = [_residual_figure(r, name) for r, name in zip(result.scans, names)]
+    body.append(rep.section("Scans coloured by residual", "".join(figures)))
+    body.append(
+        _acceptance_spec_section(
+            spec, result.scans[0].spec_path, f"VDI/VDE 2634 Part 2, full test over {n} scans"
+        )
+    )
+    for r, name in zip(result.scans, names):
+        body.append(_inputs_section(r, "evaluated", [], f"Calibration and inputs: scan {name}"))
+    return rep.page(
+        f"Acceptance test (VDI/VDE 2634-2) — {spec.name}, {n} scans",
+        "".join(body),
+        subtitle=spec.description,
+        generated=result.created,
+    )
+
+
 def write_acceptance_report(result: Any, out_json: str | os.PathLike[str]) -> None:
-    """Write ``<out>.json``, ``<out>.csv`` and ``<out>.html`` for an acceptance result."""
-    _write_judged(result, out_json, acceptance_html(result))
+    """Write ``<out>.json``, ``<out>.csv`` and ``<out>.html`` for an acceptance result: one
+    scan's (:class:`~metrology.acceptance.AcceptanceResult`) or a full test's
+    (:class:`~metrology.acceptance.FullAcceptance`)."""
+    full = isinstance(result, FullAcceptance)
+    html_text = full_acceptance_html(result) if full else acceptance_html(result)
+    _write_judged(result, out_json, html_text)

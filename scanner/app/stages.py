@@ -33,7 +33,13 @@ from numpy.typing import NDArray
 
 from calibration.pipeline import CalibrationResult, calibrate_session
 from calibration.report import write_calibration_report
-from metrology.acceptance import AcceptanceResult, load_acceptance_spec, run_acceptance
+from metrology.acceptance import (
+    AcceptanceResult,
+    FullAcceptance,
+    full_acceptance,
+    load_acceptance_spec,
+    run_acceptance,
+)
 from metrology.coverage_map import write_coverage_map
 from metrology.ef_check import EFCheckResult, EFTolerances, run_ef_check
 from metrology.ef_report import write_ef_report
@@ -541,7 +547,7 @@ class ReportFiles:
         return cls(out, out.with_suffix(".csv"), out.with_suffix(".html"))
 
 
-R = TypeVar("R", MeasurementReport, AcceptanceResult)
+R = TypeVar("R", MeasurementReport, AcceptanceResult, FullAcceptance)
 
 
 def _judge_cloud(
@@ -633,13 +639,46 @@ def measure(
 
 
 def acceptance(
-    cloud_path: Path, spec: str | Path, out: Path, *, calibration_path: Path | None = None
-) -> Judged[AcceptanceResult]:
-    """PF, PS, SD and F of a scan of a sphere bar and a plate against the spec's MPEs."""
-    result, files = _judge_cloud(
-        "acceptance", cloud_path, spec, out, calibration_path, _accept, write_acceptance_report
-    )
-    return Judged(result, files)
+    cloud_path: Path | Sequence[Path],
+    spec: str | Path,
+    out: Path,
+    *,
+    calibration_path: Path | None = None,
+) -> Judged[AcceptanceResult] | Judged[FullAcceptance]:
+    """PF, PS, SD and F of scans of a sphere bar and a plate against the spec's MPEs.
+
+    One cloud: that scan's test (:class:`AcceptanceResult`). Several, the guideline's full
+    test (the bar and plate in several positions): each scan judged, each characteristic
+    decided by its worst scan (:class:`FullAcceptance`), one report of them all.
+    """
+    clouds = [Path(cloud_path)] if isinstance(cloud_path, (str, Path)) else list(cloud_path)
+    if not clouds:
+        raise ValueError("clouds: expected at least one acceptance scan, got none")
+    if len(clouds) == 1:
+        result, files = _judge_cloud(
+            "acceptance", clouds[0], spec, out, calibration_path, _accept, write_acceptance_report
+        )
+        return Judged(result, files)
+    seen: set[Path] = set()
+    for c in map(Path, clouds):
+        if c.resolve() in seen:
+            raise InputError(c, "given twice: expected each scan of the test once")
+        seen.add(c.resolve())
+    files = ReportFiles.beside(Path(out))
+    spec_path = resolve_config(spec, "plans")
+    inputs = [*clouds, spec_path, *([calibration_path] if calibration_path else [])]
+    check_outputs_apart(inputs, [files.json_path, files.csv_path, files.html_path])
+    scans = []
+    for c in map(Path, clouds):
+        points, cloud_provenance = _cloud_with_provenance(c, calibration_path)
+        cloud_provenance["stage"] = provenance("acceptance", {"cloud": c, "plan": spec_path})
+        scan = _accept(points, spec_path, cloud_provenance)
+        scan.cloud_path = str(c)
+        scans.append(scan)
+    full = full_acceptance(scans)
+    with commit_together() as staged:
+        write_acceptance_report(full, staged(files.json_path))
+    return Judged(full, files)
 
 
 # --------------------------------------------------------------------------------------------

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from metrology.acceptance import MPE, load_acceptance_spec, run_acceptance
+from metrology.acceptance import MPE, full_acceptance, load_acceptance_spec, run_acceptance
 from scanner.app.cli import main
 from scanner.core.config import CONFIG_DIR, ConfigError
 from tests.metrology.test_measure import SPHERES, paper_scene
@@ -119,3 +119,83 @@ def test_acceptance_command(tmp_path: Path, capsys, monkeypatch):
     capsys.readouterr()
     assert main(["acceptance", str(cloud), "--spec", "nope", "--out", str(out)]) == 2
     assert "config not found" in capsys.readouterr().err
+
+
+def test_the_full_test_takes_each_characteristics_worst_scan():
+    # Three positions of the bar: sizes off by +0.03, -0.05 and +0.01 mm; the second also
+    # with the bar 0.3 mm longer; the third's plate bumped. Each characteristic's row must
+    # come from the scan where it is worst, with that scan's value, whatever the order.
+    rng = np.random.default_rng(5)
+    moved = (SPHERES[0], SPHERES[1] + [0.3, 0.0, 0.0])
+    spec = dataclasses.replace(load_acceptance_spec(SPEC), mpe=MPE(0.15, 0.04, 0.1, 0.1))
+    clouds = [
+        paper_scene(rng, noise_mm=0.005, diameter_mm=25.43),
+        paper_scene(rng, noise_mm=0.005, diameter_mm=25.35, centers=moved),
+        paper_scene(rng, noise_mm=0.005, diameter_mm=25.41, plate_bump_mm=0.2),
+    ]
+    scans = [run_acceptance(c, spec) for c in clouds]
+    for k, scan in enumerate(scans):
+        scan.cloud_path = f"position_{k}.ply"
+    full = full_acceptance(scans)
+    c = by_symbol(full)
+    for ps in c["PS"]:
+        assert ps.value_mm == pytest.approx(-0.05, abs=0.002)
+        assert ps.row.final_status == "fail"  # MPE 0.04
+        assert ps.row.note.startswith("scan 2 of 3, position_1.ply")
+    assert c["SD"][0].value_mm == pytest.approx(0.3, abs=0.002)
+    assert c["F"][0].value_mm == pytest.approx(scans[2].worst("F"))
+    # rows: PF and PS of sphere_1, of sphere_2, SD, F
+    assert [full.decided_by[i] for i in (1, 3, 4, 5)] == [1, 1, 1, 2]
+    assert full.worst("PS") == pytest.approx(-0.05, abs=0.002)
+    assert not full.passed and full.n_failed == 4  # both PS, SD, F
+    # the scans' order does not matter
+    again = full_acceptance(scans[::-1])
+    assert [ch.value_mm for ch in again.characteristics] == [
+        ch.value_mm for ch in full.characteristics
+    ]
+    data = json.loads(json.dumps(full.to_json(), allow_nan=False))
+    assert [ch["scan"] for ch in data["characteristics"]] == full.decided_by
+    assert len(data["scans"]) == 3 and data["scans"][1]["values_mm"]["SD"] == pytest.approx(
+        0.3, abs=0.002
+    )
+
+
+def test_a_scan_that_cannot_be_evaluated_decides_the_full_test():
+    rng = np.random.default_rng(6)
+    whole = paper_scene(rng)
+    cut = paper_scene(rng)
+    cut = cut[np.linalg.norm(cut - SPHERES[0], axis=1) > 20]
+    full = full_acceptance([run_acceptance(whole, SPEC), run_acceptance(cut, SPEC)])
+    c = by_symbol(full)
+    assert c["PF"][0].row.final_status == "error" and full.decided_by[0] == 1
+    assert c["SD"][0].value_mm is None and not full.passed
+    with pytest.raises(ValueError, match="expected at least one"):
+        full_acceptance([])
+    other = dataclasses.replace(load_acceptance_spec(SPEC), name="other")
+    with pytest.raises(ValueError, match=r"scans\[1\]: expected the specification"):
+        full_acceptance([run_acceptance(whole, SPEC), run_acceptance(whole, other)])
+
+
+def test_acceptance_command_with_several_scans(tmp_path: Path, capsys, monkeypatch):
+    monkeypatch.setenv("SCANNER_RENDERER", "matplotlib")
+    clouds = []
+    for k, d in enumerate((25.42, 25.33)):
+        clouds.append(tmp_path / f"position_{k}.npy")
+        np.save(clouds[-1], paper_scene(np.random.default_rng(7 + k), n=6000, diameter_mm=d))
+    out = tmp_path / "acc.json"
+    args = ["acceptance", *map(str, clouds), "--spec", "acceptance_paper", "--out", str(out)]
+    assert main(args) == 0
+    printed = capsys.readouterr().out
+    assert "acceptance: PASS: 6 passed, 0 failed" in printed
+    data = json.loads(out.read_text())
+    assert data["values_mm"]["PS"] == pytest.approx(-0.07, abs=0.005)
+    assert [s["cloud"]["path"] for s in data["scans"]] == list(map(str, clouds))
+    html = out.with_suffix(".html").read_text()
+    assert "the worst scan decides" in html and "position_1.npy" in html
+    assert len(out.with_suffix(".csv").read_text().splitlines()) == 7  # header + 6 rows
+    # the same scan twice is refused, and nothing is written over the first run's files
+    before = out.read_bytes()
+    assert main(["acceptance", str(clouds[0]), str(clouds[0]), "--spec", "acceptance_paper",
+                 "--out", str(out)]) == 2  # fmt: skip
+    assert "given twice" in capsys.readouterr().err
+    assert out.read_bytes() == before

@@ -52,9 +52,16 @@ def add_out(p: argparse.ArgumentParser, what: str) -> None:
     p.add_argument("--out", type=Path, required=True, help=what)
 
 
-def add_cloud_judging(p: argparse.ArgumentParser, option: str, what: str, strict: str) -> None:
-    """The arguments of a command that judges a cloud against a config (plan or spec)."""
-    p.add_argument("cloud", type=Path, help="point cloud (.ply, .pcd, .e57, .xyz, .npy, ...)")
+def add_cloud_judging(
+    p: argparse.ArgumentParser, option: str, what: str, strict: str, several: str = ""
+) -> None:
+    """The arguments of a command that judges a cloud against a config (plan or spec);
+    ``several``: the command takes one or more clouds, and what several mean."""
+    formats = "(.ply, .pcd, .e57, .xyz, .npy, ...)"
+    if several:
+        p.add_argument("cloud", type=Path, nargs="+", help=f"point clouds {formats}: {several}")
+    else:
+        p.add_argument("cloud", type=Path, help=f"point cloud {formats}")
     p.add_argument(
         option, required=True, help=f"{what}: a TOML file, or the name of one in configs/plans/"
     )

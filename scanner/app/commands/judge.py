@@ -2,8 +2,9 @@
 
 ``scanner measure CLOUD --plan PLAN.toml --out REPORT.json`` fits the plan's features in the
 cloud and evaluates its measurements against nominal and tolerance. ``scanner acceptance
-CLOUD --spec ACCEPTANCE.toml --out RESULT.json`` evaluates the VDI/VDE 2634-2 figures PF, PS,
-SD and F on a scan of a sphere bar and a flat plate against the spec's MPEs. Both write the
+CLOUD [CLOUD ...] --spec ACCEPTANCE.toml --out RESULT.json`` evaluates the VDI/VDE 2634-2
+figures PF, PS, SD and F on scans of a sphere bar and a flat plate against the spec's MPEs
+(several scans: the guideline's full test, each characteristic decided by its worst scan). Both write the
 JSON with a CSV (the table) and an HTML report beside it, print the summary line and what
 did not pass, and exit 0 when the run completed (``--strict``: 1 when something failed).
 """
@@ -64,10 +65,12 @@ class JudgeCommand:
     strict: str
     stage: Callable[[argparse.Namespace], stages.Judged]
     failures: Callable[[stages.Judged], list[str]]
+    several: str = ""
+    """Where the command takes several clouds: what they mean (empty: one cloud)."""
 
     def register(self, sub: argparse._SubParsersAction) -> None:
         p = sub.add_parser(self.name, help=self.summary, description=self.description)
-        add_cloud_judging(p, self.option, self.what, self.strict)
+        add_cloud_judging(p, self.option, self.what, self.strict, self.several)
         p.set_defaults(func=self.run)
 
     def run(self, args: argparse.Namespace) -> int:
@@ -96,10 +99,13 @@ ACCEPTANCE = JudgeCommand(
     "acceptance",
     "acceptance test after VDI/VDE 2634-2 on a scan of a sphere bar and a plate",
     "Evaluate PF, PS, SD and F (VDI/VDE 2634 Part 2) on a scan of a sphere bar and a flat "
-    "plate against the maximum permissible errors of a specification.",
+    "plate against the maximum permissible errors of a specification. Several scans (the "
+    "guideline's full test: the bar and plate in several positions) give one report in which "
+    "each characteristic is decided by its worst scan.",
     "--spec",
     "acceptance specification",
     "the test fails",
     _accept,
     _acceptance_failures,
+    several="the scans of one test, each characteristic decided by its worst scan",
 )

@@ -41,6 +41,7 @@ def _snapshot(root: Path) -> dict[str, bytes]:
         "scan {session} --calibration {calibration} --out {session}/cloud.ply",
         "measure {cloud} --plan paper_sweep --calibration {calibration} --out {calibration}",
         "acceptance {cloud} --spec acceptance_paper --out {tmp}/cloud.json --calibration {tmp}/cloud.csv",
+        "acceptance {cloud} {tmp}/cloud.csv --spec acceptance_paper --out {tmp}/cloud.json",
     ],
 )
 def test_an_output_that_would_replace_an_input_is_refused(files, tmp_path, capsys, argv):
