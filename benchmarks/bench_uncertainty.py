@@ -9,10 +9,11 @@ calibration (with the covariance the file now carries), a new sweep of the same 
 scan, the measurement with ``configs/plans/modern_sweep.toml`` and the EF check. With
 ``--randomised`` each seed also draws another sensor (camera, lens, laser geometry, hand-eye,
 robot repeatability, noise: :func:`scanner.virtual_cell.random_cell.randomised_cell`), and that
-sensor gets its own acceptance test, as a user's would after calibrating it: an independent
-100-frame sweep of the same scene, scanned with the job's calibration and judged by
-``scanner acceptance`` (``configs/plans/acceptance_modern.toml``); its PS and SD become the
-plan's ``instrument`` figures for that seed (the modern plan's are the modern sensor's own).
+sensor gets its own acceptance test, as a user's would after calibrating it: the guideline's
+full test, ``ACCEPTANCE_SWEEPS`` independent sweeps of the same scene, each like the job's,
+scanned with the job's calibration and judged by ``scanner acceptance``
+(``configs/plans/acceptance_modern.toml``); the worst PS and SD over them become the plan's
+``instrument`` figures for that seed (the modern plan's are the modern sensor's own).
 
 For each characteristic (sphere spacing, both sphere diameters, the plate's flatness, every EF
 length) the true error is the measured value minus the cell's exact geometry (the plate is
@@ -60,29 +61,52 @@ from scanner.virtual_cell.truth import read_truth
 CHARACTERISTICS = ("sphere spacing", "sphere_1 diameter", "sphere_2 diameter", "plate flatness")
 PLAN = "modern_sweep"
 ACCEPTANCE = "acceptance_modern"
-#: The acceptance sweep's frames (the shipped plan's figures came from a 100-frame sweep).
-ACCEPTANCE_FRAMES = 100
+#: The acceptance test's sweeps: VDI/VDE 2634-2 repeats the sphere bar's scan and takes each
+#: characteristic's worst. One sweep's PS is one draw of the size error, not a bound of it: on
+#: randomised sensors a single 100-frame sweep gave PS 0.015-0.020 mm where the job's size
+#: error was +0.026 to +0.046 mm (twenty-fourth session).
+ACCEPTANCE_SWEEPS = 3
+#: Each acceptance sweep's frames: the job's (the cell's sweep). A 100-frame sweep sees each
+#: sphere from a third of the job's stops; its error scatters about sqrt(3) times as much, and
+#: that scatter, taken as the bound of the job's error, overstated the spacing's U.
+ACCEPTANCE_FRAMES: int | None = None
 
 
-def sensor_acceptance(cell: CellConfig, seed: int, folder: Path) -> dict[str, float]:
-    """The randomised sensor's own PS and SD (mm): its acceptance test on an independent sweep.
+def sensor_acceptance(cell: CellConfig, seed: int, folder: Path) -> dict:
+    """The randomised sensor's own PS and SD (mm): its acceptance test on independent sweeps.
 
-    As a user verifies a sensor after calibrating it: the sweep (``ACCEPTANCE_FRAMES`` frames,
-    rendered with another seed than the job's, so its noise is not the job's) is scanned with
-    the job's own calibration and judged against ``ACCEPTANCE``. Cached in
-    ``folder/acceptance.json``.
+    As a user verifies a sensor after calibrating it: ``ACCEPTANCE_SWEEPS`` sweeps (each of
+    ``ACCEPTANCE_FRAMES`` frames, rendered with other seeds than the job's, so their noise and
+    robot misses are not the job's) are scanned with the job's own calibration and judged
+    together against ``ACCEPTANCE`` (``scanner acceptance``'s full test); ``PS`` and ``SD``
+    are its decisive values (the worst over the sweeps, signed), ``sweeps`` each sweep's.
+    Cached in ``folder/acceptance.json`` (a cache of another design is measured again).
     """
     cached = folder / "acceptance.json"
+    design = {"sweeps_run": ACCEPTANCE_SWEEPS, "frames": ACCEPTANCE_FRAMES}
     if cached.is_file():
-        return json.loads(cached.read_text())
-    sim = folder / "acceptance"
-    stages.simulate(
-        cell, sim, seed=20_000 + seed, sessions=("sweep",), sweep_frames=ACCEPTANCE_FRAMES
-    )
-    stages.scan([sim / "sweep"], folder / "cal.json", sim / "cloud.ply")
-    judged = stages.acceptance(sim / "cloud.ply", ACCEPTANCE, sim / "acceptance.json")
+        figures = json.loads(cached.read_text())
+        if all(figures.get(k) == v for k, v in design.items()):
+            return figures
+    clouds = []
+    for k in range(ACCEPTANCE_SWEEPS):
+        sim = folder / f"acceptance-{k}"
+        stages.simulate(
+            cell, sim, seed=20_000 + 1_000 * k + seed, sessions=("sweep",),
+            sweep_frames=ACCEPTANCE_FRAMES, workers=2,
+        )  # fmt: skip
+        stages.scan([sim / "sweep"], folder / "cal.json", sim / "cloud.ply")
+        shutil.rmtree(sim / "sweep", ignore_errors=True)
+        clouds.append(sim / "cloud.ply")
+    # the product's full test: each characteristic decided by its worst scan
+    (folder / "acceptance").mkdir(exist_ok=True)
+    judged = stages.acceptance(clouds, ACCEPTANCE, folder / "acceptance" / "acceptance.json")
+    scans = getattr(judged.result, "scans", [judged.result])
+    sweeps = [{sym: scan.worst(sym) for sym in ("PS", "SD")} for scan in scans]
     figures = {sym: judged.result.worst(sym) for sym in ("PS", "SD")}
-    shutil.rmtree(sim / "sweep", ignore_errors=True)
+    if None in figures.values():
+        raise RuntimeError(f"{folder}: the acceptance test could not evaluate {sweeps}")
+    figures |= design | {"sweeps": sweeps}
     cached.write_text(json.dumps(figures, indent=1))
     return figures
 
@@ -313,6 +337,16 @@ def summarise(results: list[dict]) -> str:
             "The robot share against the part of the error the drawn misses made (the cloud "
             "moved to the true stops): RMS of part / stated robot u, about 1 where that share "
             "is honest: " + ", ".join(parts) + "."
+        )
+    inst = [r["instrument"] for r in results if r.get("instrument")]
+    if inst:
+        ps, sd = (np.abs([f[sym] for f in inst]) for sym in ("PS", "SD"))
+        runs = sorted({f.get("sweeps_run", 1) for f in inst})
+        lines.append("")
+        lines.append(
+            f"Each sensor's acceptance test (the worst of {'/'.join(map(str, runs))} sweeps): "
+            f"PS median {np.median(ps):.4f} mm ({ps.min():.4f}-{ps.max():.4f}), SD median "
+            f"{np.median(sd):.4f} mm ({sd.min():.4f}-{sd.max():.4f}), {len(inst)} seeds."
         )
     rep = [r["repeatability"] for r in results if r.get("repeatability")]
     if rep:
