@@ -80,7 +80,8 @@ def sensor_acceptance(cell: CellConfig, seed: int, folder: Path) -> dict:
     robot misses are not the job's) are scanned with the job's own calibration and judged
     together against ``ACCEPTANCE`` (``scanner acceptance``'s full test); ``PS`` and ``SD``
     are its decisive values (the worst over the sweeps, signed), ``sweeps`` each sweep's.
-    Cached in ``folder/acceptance.json`` (a cache of another design is measured again).
+    Cached in ``folder/acceptance.json``; a cache of another design is measured again, also
+    under ``--again``. The sweeps' seeds stay apart from each other's for seeds below 1000.
     """
     cached = folder / "acceptance.json"
     design = {"sweeps_run": ACCEPTANCE_SWEEPS, "frames": ACCEPTANCE_FRAMES}
@@ -101,8 +102,7 @@ def sensor_acceptance(cell: CellConfig, seed: int, folder: Path) -> dict:
     # the product's full test: each characteristic decided by its worst scan
     (folder / "acceptance").mkdir(exist_ok=True)
     judged = stages.acceptance(clouds, ACCEPTANCE, folder / "acceptance" / "acceptance.json")
-    scans = getattr(judged.result, "scans", [judged.result])
-    sweeps = [{sym: scan.worst(sym) for sym in ("PS", "SD")} for scan in scans]
+    sweeps = [{sym: scan.worst(sym) for sym in ("PS", "SD")} for scan in judged.result.scans]
     figures = {sym: judged.result.worst(sym) for sym in ("PS", "SD")}
     if None in figures.values():
         raise RuntimeError(f"{folder}: the acceptance test could not evaluate {sweeps}")
@@ -205,7 +205,9 @@ def run_seed(seed: int, randomised: bool, work: Path, again: bool = False) -> di
     """One independent job; returns (and caches) its errors and uncertainties.
 
     ``again``: measure and check once more from the cached sessions, calibration and cloud
-    (after a change to the propagation), without simulating, calibrating or scanning.
+    (after a change to the propagation), without simulating, calibrating or scanning the job
+    (a randomised sensor's acceptance figures of an older design are measured again:
+    :func:`sensor_acceptance`).
     """
     kind = "randomised" if randomised else "modern"
     folder = work / f"{kind}-{seed:03d}"
@@ -378,7 +380,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--work", type=Path, default=Path("/tmp/bench_uncertainty"))
     parser.add_argument("--report", action="store_true", help="summarise the cache only")
     parser.add_argument(
-        "--again", action="store_true", help="measure the cached clouds again (no simulation)"
+        "--again",
+        action="store_true",
+        help="measure the cached clouds again (no simulation of the job; acceptance figures "
+        "of an older design are measured again)",
     )
     args = parser.parse_args(argv)
     kind = "randomised" if args.randomised else "modern"

@@ -282,8 +282,9 @@ class FullAcceptance(_Judged):
     """The guideline's full test: the sphere bar and plate scanned in several positions.
 
     ``characteristics`` holds each characteristic's decisive row, from the scan where it is
-    worst (a scan where it could not be evaluated decides it), its note naming that scan;
-    ``decided_by[i]`` is that scan's index into ``scans``.
+    worst (a scan where it could not be evaluated decides it), its note naming that scan
+    (counted from 1); ``decided_by[i]`` is that scan's index into ``scans`` (from 0, the
+    JSON's ``scan_index``).
     """
 
     scans: list[AcceptanceResult]
@@ -302,7 +303,8 @@ class FullAcceptance(_Judged):
     def to_json(self) -> dict[str, Any]:
         return self._verdict_json(self.spec, self.scans[0].spec_path, self.created) | {
             "characteristics": [
-                c.to_json() | {"scan": k} for c, k in zip(self.characteristics, self.decided_by)
+                c.to_json() | {"scan_index": k, "cloud": self.scans[k].cloud_path}
+                for c, k in zip(self.characteristics, self.decided_by)
             ],
             "rows": [r.to_json() for r in self.rows],
             "scans": [r.to_json() for r in self.scans],

@@ -571,7 +571,7 @@ def acceptance_html(result: Any) -> str:
             spec,
             result.spec_path,
             "VDI/VDE 2634 Part 2, one scan (the full test repeats it in several positions and "
-            "keeps the worst values: give `scanner acceptance` every scan)",
+            "keeps the worst values: give scanner acceptance every scan)",
         )
     )
     body.append(_inputs_section(result, "evaluated", []))

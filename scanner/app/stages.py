@@ -20,12 +20,13 @@ from __future__ import annotations
 import hashlib
 import logging
 import math
+import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Generic, Literal, TypeVar
+from typing import Any, Generic, Literal, TypeVar, overload
 
 import numpy as np
 import open3d as o3d
@@ -547,31 +548,47 @@ class ReportFiles:
         return cls(out, out.with_suffix(".csv"), out.with_suffix(".html"))
 
 
+#: One cloud's result, and the result written (one cloud's, or several clouds' combined).
+J = TypeVar("J", MeasurementReport, AcceptanceResult)
 R = TypeVar("R", MeasurementReport, AcceptanceResult, FullAcceptance)
 
 
-def _judge_cloud(
+def _the_one(results: list[J]) -> J:
+    return results[0]
+
+
+def _judge_clouds(
     stage: str,
-    cloud_path: Path,
+    cloud_paths: Sequence[Path],
     config: str | Path,
     out: Path,
     calibration_path: Path | None,
-    judge: Callable[[NDArray, Path, dict[str, Any]], R],
+    judge: Callable[[NDArray, Path, dict[str, Any]], J],
+    combine: Callable[[list[J]], R],
     write: Callable[[R, Path], object],
 ) -> tuple[R, ReportFiles]:
-    """Judge a cloud against a plan or spec (``configs/plans`` name or path); write the files.
-
-    ``judge(points, config_path, provenance)`` loads the config and computes the result;
-    ``write(result, out_json)`` writes the JSON, CSV and HTML beside each other.
-    """
+    """Judge clouds against a plan or spec (``configs/plans`` name or path); write the files:
+    ``judge(points, config_path, provenance)`` gives one cloud's result, ``combine`` the one
+    written (:func:`_the_one` for one cloud), ``write(result, out_json)`` the JSON, CSV and
+    HTML. Every cloud is checked (there, given once, not an output) before any is read."""
     files = ReportFiles.beside(Path(out))
     config_path = resolve_config(config, "plans")
-    inputs = [cloud_path, config_path, *([calibration_path] if calibration_path else [])]
+    clouds = [Path(c) for c in cloud_paths]
+    for k, c in enumerate(clouds):
+        if not c.is_file():
+            raise InputError(c, "point cloud not found")
+        if any(os.path.samefile(c, earlier) for earlier in clouds[:k]):
+            raise InputError(c, "given twice: expected each scan once")
+    inputs = [*clouds, config_path, *([calibration_path] if calibration_path else [])]
     check_outputs_apart(inputs, [files.json_path, files.csv_path, files.html_path])
-    points, cloud_provenance = _cloud_with_provenance(cloud_path, calibration_path)
-    cloud_provenance["stage"] = provenance(stage, {"cloud": cloud_path, "plan": config_path})
-    result = judge(points, config_path, cloud_provenance)
-    result.cloud_path = str(cloud_path)
+    results = []
+    for c in clouds:
+        points, cloud_provenance = _cloud_with_provenance(c, calibration_path)
+        cloud_provenance["stage"] = provenance(stage, {"cloud": c, "plan": config_path})
+        one = judge(points, config_path, cloud_provenance)
+        one.cloud_path = str(c)
+        results.append(one)
+    result = combine(results)
     with commit_together() as staged:
         write(result, staged(files.json_path))
     return result, files
@@ -632,12 +649,21 @@ def measure(
     ``plan`` is a TOML path or the name of a shipped plan (``configs/plans``).
     """
     judge = _measure_with_uncertainty(Path(cloud_path), calibration_path)
-    report, files = _judge_cloud(
-        "measure", cloud_path, plan, out, calibration_path, judge, write_measurement_report
-    )
+    report, files = _judge_clouds(
+        "measure", [cloud_path], plan, out, calibration_path, judge, _the_one,
+        write_measurement_report,
+    )  # fmt: skip
     return Judged(report, files)
 
 
+@overload
+def acceptance(
+    cloud_path: Path, spec: str | Path, out: Path, *, calibration_path: Path | None = None
+) -> Judged[AcceptanceResult]: ...
+@overload
+def acceptance(
+    cloud_path: Sequence[Path], spec: str | Path, out: Path, *, calibration_path: Path | None = None
+) -> Judged[FullAcceptance]: ...
 def acceptance(
     cloud_path: Path | Sequence[Path],
     spec: str | Path,
@@ -647,37 +673,22 @@ def acceptance(
 ) -> Judged[AcceptanceResult] | Judged[FullAcceptance]:
     """PF, PS, SD and F of scans of a sphere bar and a plate against the spec's MPEs.
 
-    One cloud: that scan's test (:class:`AcceptanceResult`). Several, the guideline's full
-    test (the bar and plate in several positions): each scan judged, each characteristic
-    decided by its worst scan (:class:`FullAcceptance`), one report of them all.
-    """
-    clouds = [Path(cloud_path)] if isinstance(cloud_path, (str, Path)) else list(cloud_path)
-    if not clouds:
-        raise ValueError("clouds: expected at least one acceptance scan, got none")
-    if len(clouds) == 1:
-        result, files = _judge_cloud(
-            "acceptance", clouds[0], spec, out, calibration_path, _accept, write_acceptance_report
-        )
+    One path: that scan's :class:`AcceptanceResult`. A sequence, the guideline's full test
+    (the bar and plate in several positions): a :class:`FullAcceptance`, each characteristic
+    decided by its worst scan. Bad input (see :func:`_judge_clouds`) raises
+    :class:`InputError` before anything is written; an empty sequence ``ValueError``."""
+    if isinstance(cloud_path, (str, os.PathLike)):
+        result, files = _judge_clouds(
+            "acceptance", [Path(cloud_path)], spec, out, calibration_path, _accept, _the_one,
+            write_acceptance_report,
+        )  # fmt: skip
         return Judged(result, files)
-    seen: set[Path] = set()
-    for c in map(Path, clouds):
-        if c.resolve() in seen:
-            raise InputError(c, "given twice: expected each scan of the test once")
-        seen.add(c.resolve())
-    files = ReportFiles.beside(Path(out))
-    spec_path = resolve_config(spec, "plans")
-    inputs = [*clouds, spec_path, *([calibration_path] if calibration_path else [])]
-    check_outputs_apart(inputs, [files.json_path, files.csv_path, files.html_path])
-    scans = []
-    for c in map(Path, clouds):
-        points, cloud_provenance = _cloud_with_provenance(c, calibration_path)
-        cloud_provenance["stage"] = provenance("acceptance", {"cloud": c, "plan": spec_path})
-        scan = _accept(points, spec_path, cloud_provenance)
-        scan.cloud_path = str(c)
-        scans.append(scan)
-    full = full_acceptance(scans)
-    with commit_together() as staged:
-        write_acceptance_report(full, staged(files.json_path))
+    if not cloud_path:
+        raise ValueError("cloud_path: expected at least one acceptance scan, got none")
+    full, files = _judge_clouds(
+        "acceptance", cloud_path, spec, out, calibration_path, _accept, full_acceptance,
+        write_acceptance_report,
+    )  # fmt: skip
     return Judged(full, files)
 
 

@@ -122,16 +122,19 @@ def test_acceptance_command(tmp_path: Path, capsys, monkeypatch):
 
 
 def test_the_full_test_takes_each_characteristics_worst_scan():
-    # Three positions of the bar: sizes off by +0.03, -0.05 and +0.01 mm; the second also
-    # with the bar 0.3 mm longer; the third's plate bumped. Each characteristic's row must
-    # come from the scan where it is worst, with that scan's value, whatever the order.
+    # Three positions of the bar: sizes off by +0.06, -0.05 and +0.01 mm (the positive one
+    # decides), spacings off by 0, -0.3 and +0.1 mm (the negative one decides), the third
+    # plate bumped. Each row must come from the scan where its magnitude is largest, with
+    # that scan's signed value, whatever the scans' order.
     rng = np.random.default_rng(5)
-    moved = (SPHERES[0], SPHERES[1] + [0.3, 0.0, 0.0])
+    axis = (SPHERES[1] - SPHERES[0]) / np.linalg.norm(SPHERES[1] - SPHERES[0])
+    shorter = (SPHERES[0], SPHERES[1] - 0.3 * axis)
+    longer = (SPHERES[0], SPHERES[1] + 0.1 * axis)
     spec = dataclasses.replace(load_acceptance_spec(SPEC), mpe=MPE(0.15, 0.04, 0.1, 0.1))
     clouds = [
-        paper_scene(rng, noise_mm=0.005, diameter_mm=25.43),
-        paper_scene(rng, noise_mm=0.005, diameter_mm=25.35, centers=moved),
-        paper_scene(rng, noise_mm=0.005, diameter_mm=25.41, plate_bump_mm=0.2),
+        paper_scene(rng, noise_mm=0.005, diameter_mm=25.46),
+        paper_scene(rng, noise_mm=0.005, diameter_mm=25.35, centers=shorter),
+        paper_scene(rng, noise_mm=0.005, diameter_mm=25.41, centers=longer, plate_bump_mm=0.2),
     ]
     scans = [run_acceptance(c, spec) for c in clouds]
     for k, scan in enumerate(scans):
@@ -139,25 +142,26 @@ def test_the_full_test_takes_each_characteristics_worst_scan():
     full = full_acceptance(scans)
     c = by_symbol(full)
     for ps in c["PS"]:
-        assert ps.value_mm == pytest.approx(-0.05, abs=0.002)
+        assert ps.value_mm == pytest.approx(0.06, abs=0.002)
         assert ps.row.final_status == "fail"  # MPE 0.04
-        assert ps.row.note.startswith("scan 2 of 3, position_1.ply")
-    assert c["SD"][0].value_mm == pytest.approx(0.3, abs=0.002)
+        assert ps.row.note.startswith("scan 1 of 3, position_0.ply")
+    assert c["SD"][0].value_mm == pytest.approx(-0.3, abs=0.002)
+    assert c["SD"][0].row.note.startswith("scan 2 of 3, position_1.ply")
     assert c["F"][0].value_mm == pytest.approx(scans[2].worst("F"))
     # rows: PF and PS of sphere_1, of sphere_2, SD, F
-    assert [full.decided_by[i] for i in (1, 3, 4, 5)] == [1, 1, 1, 2]
-    assert full.worst("PS") == pytest.approx(-0.05, abs=0.002)
+    assert [full.decided_by[i] for i in (1, 3, 4, 5)] == [0, 0, 1, 2]
+    assert full.worst("PS") == pytest.approx(0.06, abs=0.002)
+    assert full.worst("SD") == pytest.approx(-0.3, abs=0.002)
     assert not full.passed and full.n_failed == 4  # both PS, SD, F
-    # the scans' order does not matter
     again = full_acceptance(scans[::-1])
     assert [ch.value_mm for ch in again.characteristics] == [
         ch.value_mm for ch in full.characteristics
     ]
     data = json.loads(json.dumps(full.to_json(), allow_nan=False))
-    assert [ch["scan"] for ch in data["characteristics"]] == full.decided_by
-    assert len(data["scans"]) == 3 and data["scans"][1]["values_mm"]["SD"] == pytest.approx(
-        0.3, abs=0.002
-    )
+    assert [ch["scan_index"] for ch in data["characteristics"]] == full.decided_by
+    assert data["characteristics"][4]["cloud"] == "position_1.ply"
+    assert len(data["scans"]) == 3
+    assert data["scans"][1]["values_mm"]["SD"] == pytest.approx(-0.3, abs=0.002)
 
 
 def test_a_scan_that_cannot_be_evaluated_decides_the_full_test():
@@ -193,9 +197,13 @@ def test_acceptance_command_with_several_scans(tmp_path: Path, capsys, monkeypat
     html = out.with_suffix(".html").read_text()
     assert "the worst scan decides" in html and "position_1.npy" in html
     assert len(out.with_suffix(".csv").read_text().splitlines()) == 7  # header + 6 rows
-    # the same scan twice is refused, and nothing is written over the first run's files
-    before = out.read_bytes()
-    assert main(["acceptance", str(clouds[0]), str(clouds[0]), "--spec", "acceptance_paper",
-                 "--out", str(out)]) == 2  # fmt: skip
-    assert "given twice" in capsys.readouterr().err
-    assert out.read_bytes() == before
+    # the same scan twice (by another name too) is refused, and nothing is written over the
+    # first run's files; so is a missing scan, before any is read
+    (tmp_path / "linked.npy").hardlink_to(clouds[0])
+    before = {p.name: p.read_bytes() for p in tmp_path.glob("acc.*")}
+    for second, why in [(clouds[0], "given twice"), (tmp_path / "linked.npy", "given twice"),
+                        (tmp_path / "gone.npy", "point cloud not found")]:  # fmt: skip
+        argv = ["acceptance", str(clouds[0]), str(second), "--spec", "acceptance_paper"]
+        assert main([*argv, "--out", str(out)]) == 2
+        assert why in capsys.readouterr().err
+    assert {p.name: p.read_bytes() for p in tmp_path.glob("acc.*")} == before

@@ -1,10 +1,11 @@
 """`scanner measure` and `scanner acceptance`: judge a cloud against a plan or a spec.
 
 ``scanner measure CLOUD --plan PLAN.toml --out REPORT.json`` fits the plan's features in the
-cloud and evaluates its measurements against nominal and tolerance. ``scanner acceptance
-CLOUD [CLOUD ...] --spec ACCEPTANCE.toml --out RESULT.json`` evaluates the VDI/VDE 2634-2
-figures PF, PS, SD and F on scans of a sphere bar and a flat plate against the spec's MPEs
-(several scans: the guideline's full test, each characteristic decided by its worst scan). Both write the
+cloud and evaluates its measurements against nominal and tolerance. ``scanner
+acceptance CLOUD [CLOUD ...] --spec ACCEPTANCE.toml --out RESULT.json`` evaluates the
+VDI/VDE 2634-2 figures PF, PS, SD and F on scans of a sphere bar and a flat plate against
+the spec's MPEs (several scans: the guideline's full test, each characteristic decided by
+its worst scan). Both write the
 JSON with a CSV (the table) and an HTML report beside it, print the summary line and what
 did not pass, and exit 0 when the run completed (``--strict``: 1 when something failed).
 """
@@ -29,7 +30,9 @@ def _measure(args: argparse.Namespace) -> stages.Judged:
 
 
 def _accept(args: argparse.Namespace) -> stages.Judged:
-    return stages.acceptance(args.cloud, args.spec, args.out, calibration_path=args.calibration)
+    # one cloud: that scan's test (its own report); several: the full test over them
+    clouds = args.cloud[0] if len(args.cloud) == 1 else args.cloud
+    return stages.acceptance(clouds, args.spec, args.out, calibration_path=args.calibration)
 
 
 def _measure_failures(judged: stages.Judged) -> list[str]:
