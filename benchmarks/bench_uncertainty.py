@@ -49,7 +49,7 @@ from scanner.app import stages
 from scanner.core.config import resolve_config
 from scanner.core.conventions import invert_transform
 from scanner.formats.calibration_file import read_calibration
-from scanner.formats.clouds import cloud_arrays, read_cloud, read_ply_metadata
+from scanner.formats.clouds import read_ply_metadata
 from scanner.formats.session import read_session
 from scanner.scanning.geometry import ScanGeometry, scan_geometry_of, sweep_numbering
 from scanner.virtual_cell import load_cell
@@ -154,9 +154,8 @@ def robot_parts(
     misses' part of its error: one draw of what the budget's "robot repeatability" share
     states the spread of.
     """
-    cloud = folder / "cloud.ply"
-    points = np.asarray(cloud_arrays(read_cloud(cloud))["positions"], dtype=np.float64)
-    sessions = [read_session(s) for s in read_ply_metadata(cloud)["sessions"]]
+    points = written.points_base  # the cloud as written, in its file's order
+    sessions = [read_session(s) for s in read_ply_metadata(folder / "cloud.ply")["sessions"]]
     _, index = sweep_numbering(sessions)  # the rows of geometry.base_from_flange
     truth = read_truth(folder / "sim").sessions["sweep"]
     fix = np.tile(np.eye(4), (len(index), 1, 1))
