@@ -15,7 +15,6 @@ subprocess tests too, through ``[jobs] runner = "tests.scanner.app.plc.fakes:Fak
 
 from __future__ import annotations
 
-import os
 import threading
 import time
 from pathlib import Path
@@ -23,6 +22,7 @@ from pathlib import Path
 from scanner.app.plc.config import PlcConfig
 from scanner.app.plc.jobs import JobContext, JobError, JobOutcome
 from scanner.app.plc.registers import ErrorCode
+from tests.scanner.app.plc.job_files import write_job_pid
 
 RESULTS_UM = (12.3, -45.6, 78.9)
 
@@ -40,8 +40,7 @@ class FakeJobs:
         with self.lock:
             self.calls.append((name, ctx.job_id, ctx.parameter))
         self.started.set()
-        ctx.work_dir.mkdir(parents=True, exist_ok=True)
-        (ctx.work_dir / "pid").write_text(str(os.getpid()), encoding="utf-8")
+        write_job_pid(ctx.work_dir)
         p = ctx.parameter
         if p == 999:
             raise JobError(ErrorCode.BAD_INPUT, "fake: bad input")

@@ -17,6 +17,7 @@ from pathlib import Path
 from scanner.app.plc.config import PlcConfig
 from scanner.app.plc.jobs import JobContext, JobOutcome
 from scanner.core.parallel import process_pool
+from tests.scanner.app.plc.job_files import write_job_pid
 
 #: How long each pool task sleeps (bounded, so a leaked worker still ends eventually).
 TASK_S = 60.0
@@ -37,8 +38,7 @@ class PoolJobs:
         self.config = config
 
     def _run(self, ctx: JobContext) -> JobOutcome:
-        ctx.work_dir.mkdir(parents=True, exist_ok=True)
-        (ctx.work_dir / "pid").write_text(str(os.getpid()), encoding="utf-8")
+        write_job_pid(ctx.work_dir)
         pool = process_pool(WORKERS)
         try:
             futures: list[Future[int]] = [
