@@ -28,11 +28,12 @@ The pipeline, every geometric fact coming from the target spec:
    the face. Any doubt gives ``ok=False`` with a reason.
 
 The less usual paths (rays from ring 1, the joint fit, bundles, a centre moved off the
-crossings of the Hough lines) are later passes over the closing scales, run only where the
+crossings of the Hough lines, the crossings of weaker Hough lines) are later passes over the closing scales, run only where the
 first refused the view, so that a view the first pass measures is never exposed to their
 weaker checks.
 
-Steps 1-3 are in :mod:`calibration.detection.concentric_rays`, 4-5 in
+Steps 1-3 are in :mod:`calibration.detection.concentric_rays` (the candidate centres in
+:mod:`calibration.detection.concentric_centre`), 4-5 in
 :mod:`calibration.detection.concentric_rings` (the diameters in
 :mod:`calibration.detection.concentric_axes`) and 6 in
 :mod:`calibration.detection.concentric_labels`; :func:`detect_concentric` here runs them.
@@ -54,6 +55,14 @@ from calibration.detection.concentric_axes import (
     _refine_axes,
     _settled_axes,
 )
+from calibration.detection.concentric_centre import (
+    HOUGH_LINES,
+    WIDE_HOUGH_LINES,
+    Z_LINE,
+    _best_centre,
+    _Centre,
+    _climbed_centre,
+)
 from calibration.detection.concentric_labels import (
     _axis_dir,
     _combine_centre,
@@ -65,9 +74,9 @@ from calibration.detection.concentric_labels import (
 from calibration.detection.concentric_rays import (
     _bright_mask,
     _darkness,
+    _distinct_lines,
     _hough_lines,
     _label_rays,
-    _line_from_hough,
     _sample,
     _threshold_map,
 )
@@ -110,10 +119,6 @@ log = logging.getLogger(__name__)
 
 KIND = "concentric_circles"
 
-#: The coarse stage's maps hold the darkness over its local noise threshold: a printed line
-#: may be where it is over this (the Hough mask and the rays' crossings alike).
-Z_LINE = 1.0
-
 #: The fourth and fifth passes sample the chosen centre's rays as bundles of five parallel rays
 #: this far apart (px), each sample their mean but for the darkest and the lightest
 #: (:func:`~calibration.detection.ray_kernels.label_rays`): a line too faint for one ray's
@@ -138,12 +143,12 @@ class _CoarseMaps:
     """``(H, W)`` float64: darkness over its local threshold; -1 where the print is hidden
     (stripe, glare)."""
     lines: list[tuple[float, float]]
-    """The strongest long lines of ``z_rays > Z_LINE`` (Hough ``(rho, theta)``)."""
-
-
-#: A candidate image of O ``(2,)`` px, the two Hough lines through it (homogeneous ``(3,)``)
-#: and the diameters' four directions from it, rad.
-_Centre = tuple[NDArray, tuple[NDArray, NDArray], list[float]]
+    """The :data:`HOUGH_LINES` strongest distinct long lines of ``z_rays > Z_LINE`` (Hough
+    ``(rho, theta)``), strongest first."""
+    hough: NDArray
+    """``(N, 2)``: every Hough line, strongest first, for the last pass's weaker distinct
+    lines (sorting them out costs about half the Hough transform's time: only that pass
+    pays it)."""
 
 
 @dataclass
@@ -169,11 +174,15 @@ class _ScaleState:
     first three refused."""
     climb: bool = False
     """The chosen candidate centre is moved to where its rays find the most ring crossings
-    (:func:`_climbed_centre`): the last pass, for views all others refused."""
-    centres: dict[tuple[int, bool, bool], _Centre | None] = field(default_factory=dict)
+    (:func:`_climbed_centre`): the sixth pass, for views the first five refused."""
+    wide: bool = False
+    """The candidates are the crossings of the Hough lines after the first
+    :data:`HOUGH_LINES` (up to :data:`WIDE_HOUGH_LINES`): the last pass, for views all others
+    refused."""
+    centres: dict[tuple[int, bool, bool, bool], _Centre | None] = field(default_factory=dict)
     """The candidate centre each scale (closing kernel, px; rays from ring 1 or not; climbed
-    or not) chose, None for none: the same in every pass that labels the candidates' rays
-    alike."""
+    or not; from the wide lines or not) chose, None for none: the same in every pass that
+    labels the candidates' rays alike."""
     coarse: dict[int, _CoarseMaps] = field(default_factory=dict)
     """The coarse maps of each scale (closing kernel, px) the first pass made: the later
     passes label other rays on the same maps."""
@@ -226,18 +235,20 @@ def detect_concentric(
     # bundle's lower noise (BUNDLE_Z_LINE). Late, because a bundle blurs a steep target's
     # close rings: with bundles in the first pass, two views it measures were lost. On a
     # steep target the diameter along the short axis may be too short for a Hough line of
-    # its own, and no crossing of two lines is at O: the last pass climbs from the chosen
-    # crossing to where the rays find the most rings.
-    for ring0_hidden, joint, bundle_z_line, climb in (
-        (False, False, 0.0, False),
-        (True, False, 0.0, False),
-        (False, True, 0.0, False),
-        (False, False, Z_LINE, False),
-        (False, False, BUNDLE_Z_LINE, False),
-        (False, False, 0.0, True),
+    # its own, and no crossing of two lines is at O: the sixth pass climbs from the chosen
+    # crossing to where the rays find the most rings. Long clutter edges may outrank a small
+    # target's diameters among the Hough lines: the last pass tries the weaker lines too.
+    for ring0_hidden, joint, bundle_z_line, climb, wide in (
+        (False, False, 0.0, False, False),
+        (True, False, 0.0, False, False),
+        (False, True, 0.0, False, False),
+        (False, False, Z_LINE, False, False),
+        (False, False, BUNDLE_Z_LINE, False, False),
+        (False, False, 0.0, True, False),
+        (False, False, 0.0, False, True),
     ):
         state.ring0_hidden, state.joint, state.bundle_z_line = ring0_hidden, joint, bundle_z_line
-        state.climb = climb
+        state.climb, state.wide = climb, wide
         for kernel in kernels:
             state.progress = 0
             obs = _detect_with_kernel(img, target, s, kernel, size, state)
@@ -252,6 +263,8 @@ def detect_concentric(
                     obs = replace(obs, reason=f"{obs.reason} (rays in bundles)")
                 elif climb:
                     obs = replace(obs, reason=f"{obs.reason} (centre moved to the most rings)")
+                elif wide:
+                    obs = replace(obs, reason=f"{obs.reason} (weaker Hough lines tried)")
                 refused, furthest = obs, state.progress
     return refused  # type: ignore[return-value]
 
@@ -354,118 +367,10 @@ def _coarse_maps(
     mask = (z > Z_LINE).astype(np.uint8) * 255
     # Rays stop where the print is hidden (laser stripe, glare): see label_rays.
     z_rays = np.where(hidden, -1.0, z)
-    # Clutter's long lines can outvote a small target's diameters: a generous number of the
-    # strongest lines is tried (a crossing without rings around it costs little).
-    lines = _hough_lines(mask, min_votes=int(0.08 * min(h, w)), max_lines=16)
+    hough = _hough_lines(mask, min_votes=int(0.08 * min(h, w)))
+    lines = _distinct_lines(hough, (w, h), HOUGH_LINES)
     z_rays.flags.writeable = False  # shared by both passes
-    return _CoarseMaps(z_rays, lines), d, bg
-
-
-def _best_centre(
-    z_rays: NDArray,
-    lines: list[tuple[float, float]],
-    radii: NDArray,
-    size: tuple[int, int],
-    ring0_hidden: bool,
-) -> _Centre | None:
-    """The crossing of two long lines with the most ring crossings in order around it.
-
-    Parameters
-    ----------
-    z_rays : ndarray, shape (H, W)
-        Darkness over its local threshold, -1 where the print is hidden.
-    lines : list of (rho, theta)
-        The strongest long lines (Hough).
-    radii : ndarray, shape (K,)
-        The spec's ring radii, mm.
-    size : (int, int)
-        The image's width and height, px.
-    ring0_hidden : bool
-        See :func:`~calibration.detection.ray_kernels.label_rays`.
-
-    Returns
-    -------
-    tuple or None
-        The candidate image of O, its two lines and the diameters' directions
-        (:data:`_Centre`); None where no crossing has rings around it (a support of at
-        least 12 crossings beyond the two any fit takes, over 96 rays).
-    """
-    w, h = size
-    best = None
-    for i in range(len(lines)):
-        for j in range(i + 1, len(lines)):
-            (r1, t1), (r2, t2) = lines[i], lines[j]
-            ang = abs((t1 - t2 + np.pi / 2) % np.pi - np.pi / 2)
-            if ang < np.radians(12):
-                continue
-            l1, l2 = _line_from_hough(r1, t1), _line_from_hough(r2, t2)
-            x = intersect_lines(l1, l2)
-            if abs(x[2]) < 1e-12:
-                continue
-            c = x[:2] / x[2]
-            if not (0 <= c[0] < w and 0 <= c[1] < h):
-                continue
-            axis_angles = [t1 + np.pi / 2, t1 - np.pi / 2, t2 + np.pi / 2, t2 - np.pi / 2]
-            # a quarter of the rays first: most crossings of clutter lines stop here
-            _, quick = _label_rays(
-                z_rays, c, radii, Z_LINE, axis_angles, n_rays=24, ring0_hidden=ring0_hidden
-            )
-            if quick < 2 or (best is not None and 4 * quick < 0.5 * best[0]):
-                continue
-            _, good = _label_rays(z_rays, c, radii, Z_LINE, axis_angles, ring0_hidden=ring0_hidden)
-            if best is None or good > best[0]:
-                best = (good, c, (l1, l2), axis_angles)
-    if best is None or best[0] < 12:
-        return None
-    return best[1], best[2], best[3]
-
-
-def _climbed_centre(
-    z_rays: NDArray, centre: _Centre, radii: NDArray, step_px: float, ring0_hidden: bool
-) -> _Centre:
-    """A candidate centre moved to where its rays find the most ring crossings in order.
-
-    A pattern search on :func:`_label_rays`'s support: the eight neighbours ``step_px`` away
-    are tried, the best one taken while it beats the centre, the step halved when none does,
-    while the step is at least 1 px. The lines and the diameters' directions stay the Hough
-    lines'. Along a diameter a shift is nearly a projectivity of the radii, so the centre
-    lands on the diameter within a ring or so of O (the ring conics' pencil pins O after).
-    Among clutter the centre moves too, to wherever lines cross more often in order: what
-    refuses such a candidate is the pencil's radius ratios, the fine stage and the marker,
-    as in every pass (no false detection on the benchmark's 300 target-free views).
-
-    Parameters
-    ----------
-    z_rays : ndarray, shape (H, W)
-        Darkness over its local threshold, -1 where the print is hidden.
-    centre : tuple
-        The chosen candidate (:data:`_Centre`).
-    radii : ndarray, shape (K,)
-        The spec's ring radii, mm.
-    step_px : float
-        The first step: the coarse stage's closing kernel, the scale it looks at.
-    ring0_hidden : bool
-        See :func:`~calibration.detection.ray_kernels.label_rays`.
-    """
-    c, pair, axis_angles = centre
-    h, w = z_rays.shape
-
-    def support(p: NDArray) -> int:
-        if not (0 <= p[0] < w and 0 <= p[1] < h):
-            return -1
-        return _label_rays(z_rays, p, radii, Z_LINE, axis_angles, ring0_hidden=ring0_hidden)[1]
-
-    best = support(c)
-    moves = [np.array([dx, dy], float) for dx in (-1, 0, 1) for dy in (-1, 0, 1) if dx or dy]
-    step = float(step_px)
-    while step >= 1.0:
-        scored = [(support(c + step * m), i) for i, m in enumerate(moves)]
-        top, i = max(scored)
-        if top > best:
-            best, c = top, c + step * moves[i]
-        else:
-            step /= 2.0
-    return c, pair, axis_angles
+    return _CoarseMaps(z_rays, lines, hough), d, bg
 
 
 def _detect_with_kernel(
@@ -490,14 +395,19 @@ def _detect_with_kernel(
     z_rays, lines = state.coarse[kernel].z_rays, state.coarse[kernel].lines
     if len(lines) < 2:
         return TargetObservation.failed("no pair of diameter lines found", size, KIND)
+    if state.wide:
+        lines = _distinct_lines(state.coarse[kernel].hough, size, WIDE_HOUGH_LINES)
+        if len(lines) <= HOUGH_LINES:  # every crossing was tried
+            return TargetObservation.failed("no weaker Hough lines to try", size, KIND)
 
     state.progress = 1
     # The candidates' rays are labelled alike in every pass with the same ``ring0_hidden``.
-    key = (kernel, state.ring0_hidden, False)
+    key = (kernel, state.ring0_hidden, False, state.wide)
     if key not in state.centres:
-        state.centres[key] = _best_centre(z_rays, lines, radii, size, state.ring0_hidden)
+        first_new = HOUGH_LINES if state.wide else 0
+        state.centres[key] = _best_centre(z_rays, lines, radii, size, state.ring0_hidden, first_new)
     if state.climb:
-        start, key = state.centres[key], (kernel, state.ring0_hidden, True)
+        start, key = state.centres[key], (kernel, state.ring0_hidden, True, False)
         if key not in state.centres:
             state.centres[key] = (
                 None

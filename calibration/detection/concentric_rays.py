@@ -251,21 +251,31 @@ def _threshold_map(
 # Candidate centres
 
 
-def _hough_lines(mask: NDArray, min_votes: int, max_lines: int = 8) -> list[tuple[float, float]]:
-    """The ``max_lines`` strongest lines of ``mask`` (Hough ``(rho, theta)``, 1 px and
-    0.25 deg steps) with at least ``max(min_votes, 10)`` pixels, strongest first.
+def _hough_lines(mask: NDArray, min_votes: int) -> NDArray:
+    """Every Hough line of ``mask`` (``(rho, theta)``, 1 px and 0.25 deg steps) with at least
+    ``max(min_votes, 10)`` pixels, strongest first: shape ``(N, 2)``, float32 as OpenCV
+    gives them, N may be 0. The distinct ones are :func:`_distinct_lines`."""
+    lines = cv2.HoughLines(mask, 1.0, np.pi / 720, max(min_votes, 10))
+    return np.zeros((0, 2), np.float32) if lines is None else lines[:, 0, :]
+
+
+def _distinct_lines(
+    lines: NDArray, size: tuple[int, int], max_lines: int
+) -> list[tuple[float, float]]:
+    """The ``max_lines`` strongest distinct lines of :func:`_hough_lines`'s ``(N, 2)`` output
+    in an image of ``size`` (width, height) px, strongest first.
 
     A line within 4 deg of a stronger one that crosses it inside the image widened by half
     its size on each side, or passes within 15 px of it at the image's centre, is the same
-    line and is left out.
+    line and is left out. The first ``k`` of ``max_lines`` are the ``k`` strongest: a later
+    pass can ask for more lines of the same output.
     """
-    lines = cv2.HoughLines(mask, 1.0, np.pi / 720, max(min_votes, 10))
-    if lines is None:
-        return []
-    h, w = mask.shape
+    w, h = size
     mid = np.array([w / 2, h / 2, 1.0])
     out: list[tuple[float, float]] = []
-    for rho, theta in lines[:, 0, :]:
+    for rho, theta in lines:
+        if len(out) >= max_lines:
+            break
         dup = False
         l1 = _line_from_hough(rho, theta)
         for r2, t2 in out:
@@ -282,8 +292,6 @@ def _hough_lines(mask: NDArray, min_votes: int, max_lines: int = 8) -> list[tupl
                 break
         if not dup:
             out.append((float(rho), float(theta)))
-        if len(out) >= max_lines:
-            break
     return out
 
 

@@ -4,6 +4,7 @@ import pytest
 
 from calibration.detection import concentric
 from calibration.detection.concentric import detect_concentric
+from calibration.detection.concentric_centre import HOUGH_LINES, Z_LINE, _climbed_centre
 from calibration.detection.detect import detect_target
 from calibration.detection.observations import TargetObservation
 from calibration.symmetry import relabel
@@ -146,19 +147,22 @@ def test_no_target_gives_a_reason():
 
 
 def test_of_several_scales_the_refusal_that_got_furthest_is_reported(monkeypatch):
-    # each closing kernel fails at another stage, in all six passes (the second with rays
+    # each closing kernel fails at another stage, in all seven passes (the second with rays
     # that may start at ring 1, the third with rings that may be fitted together, the fourth
-    # and fifth with rays in bundles, the last from a centre moved to the most rings): the
-    # user sees the most telling reason
+    # and fifth with rays in bundles, the sixth from a centre moved to the most rings, the
+    # last from the crossings of weaker Hough lines): the user sees the most telling reason
     # (two closing kernels for a 400 px image)
     stages = iter([(1, "no ring pencil found: 1 rings fitted"), (5, "diameter line not printed"),
                    (3, "too oblique"), (5, "as far, second"), (1, "third"), (2, "third, too"),
                    (4, "fourth"), (5, "fourth, as far"), (1, "fifth"), (5, "fifth, as far"),
-                   (2, "sixth"), (5, "sixth, as far")])  # fmt: skip
+                   (2, "sixth"), (5, "sixth, as far"), (1, "seventh"),
+                   (5, "seventh, as far")])  # fmt: skip
     passes = []
 
     def fake(img, target, s, kernel, size, state):
-        passes.append((state.ring0_hidden, state.joint, state.bundle_z_line, state.climb))
+        passes.append(
+            (state.ring0_hidden, state.joint, state.bundle_z_line, state.climb, state.wide)
+        )
         state.progress, reason = next(stages)
         return TargetObservation.failed(reason, size, "concentric_circles")
 
@@ -166,31 +170,38 @@ def test_of_several_scales_the_refusal_that_got_furthest_is_reported(monkeypatch
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert not obs
     assert obs.reason == "diameter line not printed"
-    single = [(False, False, 0.0, False), (True, False, 0.0, False), (False, True, 0.0, False)]
-    bundles = [
-        (False, False, concentric.Z_LINE, False),
-        (False, False, concentric.BUNDLE_Z_LINE, False),
+    single = [
+        (False, False, 0.0, False, False),
+        (True, False, 0.0, False, False),
+        (False, True, 0.0, False, False),
     ]
-    climbed = [(False, False, 0.0, True)]
-    assert passes == [p for p in single + bundles + climbed for _ in range(2)]
+    bundles = [
+        (False, False, Z_LINE, False, False),
+        (False, False, concentric.BUNDLE_Z_LINE, False, False),
+    ]
+    climbed, wide = [(False, False, 0.0, True, False)], [(False, False, 0.0, False, True)]
+    assert passes == [p for p in single + bundles + climbed + wide for _ in range(2)]
     # a reason of a later pass that got further says where it comes from
     firsts = [(1, "first"), (2, "first, too")]
-    stages = iter(firsts + [(3, "second"), (6, "marker not found")] + [(1, "later")] * 8)
+    stages = iter(firsts + [(3, "second"), (6, "marker not found")] + [(1, "later")] * 10)
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert obs.reason == "marker not found (rays labelled from ring 1)"
-    stages = iter(firsts + [(2, "second"), (1, "second, too"), (4, "too oblique")] + [(1, "")] * 7)
+    stages = iter(firsts + [(2, "second"), (1, "second, too"), (4, "too oblique")] + [(1, "")] * 9)
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert obs.reason == "too oblique (rings fitted together)"
-    stages = iter(firsts + [(1, "later")] * 7 + [(3, "1 rings measured")] + [(1, "")] * 2)
+    stages = iter(firsts + [(1, "later")] * 7 + [(3, "1 rings measured")] + [(1, "")] * 4)
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert obs.reason == "1 rings measured (rays in bundles)"
-    stages = iter(firsts + [(1, "later")] * 9 + [(4, "2 rings measured")])
+    stages = iter(firsts + [(1, "later")] * 9 + [(4, "2 rings measured")] + [(1, "")] * 2)
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert obs.reason == "2 rings measured (centre moved to the most rings)"
+    stages = iter(firsts + [(1, "later")] * 11 + [(3, "1 rings measured")])
+    obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
+    assert obs.reason == "1 rings measured (weaker Hough lines tried)"
 
 
 def test_a_centre_off_the_rings_climbs_onto_the_diameter_and_one_in_noise_stays():
-    # The last pass's candidate: on a steep target no crossing of two Hough lines may be at
+    # The sixth pass's candidate: on a steep target no crossing of two Hough lines may be at
     # O. A map in the coarse stage's units (a printed line over Z_LINE), one diameter only.
     rng = np.random.default_rng(23)
     radii = np.array([10.0, 20.0, 30.0, 40.0])
@@ -203,7 +214,7 @@ def test_a_centre_off_the_rings_climbs_onto_the_diameter_and_one_in_noise_stays(
     axis_angles = [np.radians(a) for a in (20.0, 200.0, 110.0, 290.0)]
     # 8 px off the diameter, as a crossing of it with a clutter line would be
     start = (np.array([187.0, 168.0]), (np.zeros(3), np.zeros(3)), axis_angles)
-    c, _, angles = concentric._climbed_centre(z, start, radii, 8.0, False)
+    c, _, angles = _climbed_centre(z, start, radii, 8.0, False)
     np.testing.assert_array_equal(angles, np.radians([20.0, 200.0, 110.0, 290.0]))
     # Onto the diameter, inside the innermost ring (22 px along it): along the diameter a
     # shift is nearly a projectivity of the radii, and the ring conics' pencil pins O later.
@@ -212,14 +223,14 @@ def test_a_centre_off_the_rings_climbs_onto_the_diameter_and_one_in_noise_stays(
     assert abs(off @ [-along[1], along[0]]) < 2.0 and abs(off @ along) < 11.0, c
 
     def support(p):
-        return concentric._label_rays(z, p, radii, concentric.Z_LINE, axis_angles)[1]
+        return concentric._label_rays(z, p, radii, Z_LINE, axis_angles)[1]
 
     assert support(c) > 1.3 * support(start[0]) > 0
     # noise alone: no crossing in order anywhere near, the candidate stays where it was
     # (among clutter lines it moves; the pencil, the fine stage and the marker refuse it
     # there: test_randomised_detection's target-free views reach this pass)
     noise = np.maximum(rng.normal(0.0, 0.15, z.shape), 0.0)
-    c, _, _ = concentric._climbed_centre(noise, start, radii, 8.0, False)
+    c, _, _ = _climbed_centre(noise, start, radii, 8.0, False)
     np.testing.assert_array_equal(c, start[0])
 
 
@@ -254,19 +265,25 @@ def test_passes_labelling_from_ring_0_search_each_scales_centres_once(monkeypatc
     # The third to sixth passes label the candidates' rays as the first does: they take its
     # chosen centres instead of searching the line crossings again (the sixth climbs from
     # them).
+    # The last pass searches only the crossings the others did not try (a line after the
+    # first HOUGH_LINES in each pair).
     calls = []
     real = concentric._best_centre
 
-    def spy(z_rays, lines, radii, size, ring0_hidden):
-        calls.append(ring0_hidden)
-        return real(z_rays, lines, radii, size, ring0_hidden)
+    def spy(z_rays, lines, radii, size, ring0_hidden, first_new=0):
+        calls.append((ring0_hidden, first_new, len(lines)))
+        return real(z_rays, lines, radii, size, ring0_hidden, first_new)
 
     monkeypatch.setattr(concentric, "_best_centre", spy)
     rng = np.random.default_rng(17)
     T = look_at_pose(560.0, 75.0, 0.0, 0.0)
     assert not detect_target(render(demo_target(), K, T, SIZE, rng, supersample=3), demo_target())
-    assert calls.count(True) > 0  # the second pass searched every scale with lines again
-    assert calls.count(False) == calls.count(True)
+    first = [c for c in calls if c[1] == 0]
+    assert all(n <= HOUGH_LINES for _, _, n in first)
+    from_ring_1 = sum(r for r, _, _ in first)
+    assert from_ring_1 > 0  # the second pass searched every scale with lines again
+    assert len(first) - from_ring_1 == from_ring_1
+    assert all(not r and f == HOUGH_LINES and n > f for r, f, n in calls if f)
 
 
 @pytest.mark.slow

@@ -114,6 +114,9 @@ def _detected_view(
         # refused until the twenty-third session: no Hough line along the short diameter,
         # so no crossing of two lines at O (the last pass climbs to the most rings)
         (3, 34, "a 58 deg tilt, small among clutter: the short diameter gives no Hough line"),
+        # refused until the twenty-sixth session: long clutter edges outrank the diameters
+        # (22nd-43rd among the Hough lines; the last pass tries lines after the 16th)
+        (5, 1, "a small target among long clutter edges: its diameters not among 16 lines"),
     ],
 )
 def test_views_the_benchmark_missed_are_detected_and_labelled_right(
