@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from metrology.budget import COVERAGE_FACTOR
 from metrology.measure import MeasurementReport, measure_cloud
 from metrology.plan import load_plan
 from metrology.uncertainty import measurement_uncertainties
@@ -285,18 +286,21 @@ def quadrature_U(row: dict, figures: dict[str, float]) -> float:
     The budget combines them as the larger of the two (``u = max(B / sqrt(3), modelled)``,
     docs/UNCERTAINTY.md); the alternative ``u² = modelled² + B² / 3`` counts what the bound
     already holds of the modelled sources twice, and is shown beside it as evidence for the
-    choice. Rows without an instrument term keep their U.
+    choice. Rows without an instrument term in their budget (no figure in the plan) keep
+    their U. ``figures``: the PS and SD the row's plan held (mm).
     """
     sym = FIGURE_OF.get(row["name"])
-    if sym is None or not row["budget"]:
+    budget = row["budget"] or {}
+    inst = [v for k, v in budget.items() if k.startswith("instrument")]
+    if sym is None or not inst or figures.get(sym) is None:
         return row["U"]
-    inst = sum(v**2 for k, v in row["budget"].items() if k.startswith("instrument"))
-    modelled2 = max(row["u"] ** 2 - inst, 0.0)
-    return 2.0 * float(np.sqrt(modelled2 + abs(figures[sym]) ** 2 / 3.0))
+    modelled2 = max(row["u"] ** 2 - sum(v**2 for v in inst), 0.0)
+    return COVERAGE_FACTOR * float(np.sqrt(modelled2 + abs(figures[sym]) ** 2 / 3.0))
 
 
 def _rule_table(results: list[dict], names: list[str]) -> list[str]:
     """Coverage and U / p95 under the budget's rule and under the quadrature sum, same rows."""
+    # (a modern seed's plan is the shipped one: cached rows of an older plan compare wrongly)
     plan = load_plan(resolve_config(PLAN, "plans")).instrument
     shipped = {"PS": plan.probing_size_mm, "SD": plan.sphere_spacing_mm}
     lines = [

@@ -28,9 +28,9 @@ The pipeline, every geometric fact coming from the target spec:
    the face. Any doubt gives ``ok=False`` with a reason.
 
 The less usual paths (rays from ring 1, the joint fit, bundles, a centre moved off the
-crossings of the Hough lines, the crossings of weaker Hough lines) are later passes over the closing scales, run only where the
-first refused the view, so that a view the first pass measures is never exposed to their
-weaker checks.
+crossings of the Hough lines, the crossings of weaker Hough lines) are later passes over the
+closing scales, run only where the first refused the view, so that a view the first pass
+measures is never exposed to their weaker checks.
 
 Steps 1-3 are in :mod:`calibration.detection.concentric_rays` (the candidate centres in
 :mod:`calibration.detection.concentric_centre`), 4-5 in
@@ -369,7 +369,7 @@ def _coarse_maps(
     z_rays = np.where(hidden, -1.0, z)
     hough = _hough_lines(mask, min_votes=int(0.08 * min(h, w)))
     lines = _distinct_lines(hough, (w, h), HOUGH_LINES)
-    z_rays.flags.writeable = False  # shared by both passes
+    z_rays.flags.writeable = False  # shared by every pass
     return _CoarseMaps(z_rays, lines, hough), d, bg
 
 

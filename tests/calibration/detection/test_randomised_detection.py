@@ -112,7 +112,7 @@ def _detected_view(
         (1, 17, "14 thin rings 10 px apart, 21 grey levels in grain: at the threshold itself"),
         (5, 21, "a 59 deg tilt, 24 grey levels in grain: bundles below the single threshold"),
         # refused until the twenty-third session: no Hough line along the short diameter,
-        # so no crossing of two lines at O (the last pass climbs to the most rings)
+        # so no crossing of two lines at O (the sixth pass climbs to the most rings)
         (3, 34, "a 58 deg tilt, small among clutter: the short diameter gives no Hough line"),
         # refused until the twenty-sixth session: long clutter edges outrank the diameters
         # (22nd-43rd among the Hough lines; the last pass tries lines after the 16th)
