@@ -7,11 +7,19 @@ import time
 from pathlib import Path
 
 
-def write_job_pid(job_dir: Path) -> None:
-    """Write this process's id to ``job_dir/pid`` whole: a reader sees no file or the full number.
+def write_whole(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` whole: a reader polling for the file sees none or all of it.
 
-    A plain ``write_text`` creates the file before it writes the digits, so a test polling for
-    the file could read it empty; the id goes to a temporary name and is renamed into place.
+    A plain ``write_text`` creates the file before it writes, so a test polling for the file
+    could read it empty; the text goes to a temporary name and is renamed into place.
+    """
+    partial = path.with_name(path.name + ".partial")
+    partial.write_text(text, encoding="utf-8")
+    os.replace(partial, path)
+
+
+def write_job_pid(job_dir: Path) -> None:
+    """Write this process's id to ``job_dir/pid`` (:func:`write_whole`).
 
     Parameters
     ----------
@@ -19,9 +27,7 @@ def write_job_pid(job_dir: Path) -> None:
         The job's own work folder (``job-NNNNNN``); created if missing.
     """
     job_dir.mkdir(parents=True, exist_ok=True)
-    partial = job_dir / "pid.partial"
-    partial.write_text(str(os.getpid()), encoding="utf-8")
-    os.replace(partial, job_dir / "pid")
+    write_whole(job_dir / "pid", str(os.getpid()))
 
 
 def wait_for_job_pid(work_dir: Path, timeout_s: float, job: int = 1) -> int:

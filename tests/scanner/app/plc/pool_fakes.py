@@ -17,7 +17,7 @@ from pathlib import Path
 from scanner.app.plc.config import PlcConfig
 from scanner.app.plc.jobs import JobContext, JobOutcome
 from scanner.core.parallel import process_pool
-from tests.scanner.app.plc.job_files import write_job_pid
+from tests.scanner.app.plc.job_files import write_job_pid, write_whole
 
 #: How long each pool task sleeps (bounded, so a leaked worker still ends eventually).
 TASK_S = 60.0
@@ -53,9 +53,7 @@ class PoolJobs:
                 ctx.check_cancelled()
                 time.sleep(0.05)
             pids = sorted(int(p.name.split("-", 1)[1]) for p in running)
-            tmp = ctx.work_dir / "pool_pids.tmp"
-            tmp.write_text(" ".join(str(p) for p in pids), encoding="utf-8")
-            tmp.replace(ctx.work_dir / "pool_pids")
+            write_whole(ctx.work_dir / "pool_pids", " ".join(str(p) for p in pids))
             deadline = time.monotonic() + TASK_S + 10.0
             while not all(f.done() for f in futures) and time.monotonic() < deadline:
                 ctx.check_cancelled()
