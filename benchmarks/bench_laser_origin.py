@@ -74,7 +74,7 @@ def run_case(kind: str, seed: int, work: Path) -> dict:
     return result
 
 
-def _surface_distance(points: np.ndarray, obj: ObjectTruth) -> np.ndarray:
+def surface_distance(points: np.ndarray, obj: ObjectTruth) -> np.ndarray:
     """Unsigned distance of ``points`` (N, 3) to a true sphere, cylinder or plane, mm."""
     p = obj.params
     if obj.type == "sphere":
@@ -93,22 +93,27 @@ def _surface_distance(points: np.ndarray, obj: ObjectTruth) -> np.ndarray:
 
 def cloud_sphere_figures(cloud_path: Path, truth: CellTruth) -> dict[str, float]:
     """The cloud as written, every point within 1.5 mm of each true sphere (and not within
-    1.5 mm of the bar, post or table joining it): the least-squares diameter's error, the form
-    range PF (range of radial residuals), the spacing's error; and the points' noise (1.4826
-    MAD of the residuals) with the range that noise alone gives that many Gaussian points
-    (about 2 sigma sqrt(2 ln N))."""
-    points = cloud_arrays(read_cloud(cloud_path))["positions"]
+    1.5 mm of the bar, post or table joining it): :func:`sphere_figures` of its points."""
+    return sphere_figures(cloud_arrays(read_cloud(cloud_path))["positions"], truth)
+
+
+def sphere_figures(points: np.ndarray, truth: CellTruth) -> dict[str, float]:
+    """Each true sphere's points among ``points`` (N, 3), base frame, mm: those within 1.5 mm
+    of it and not within 1.5 mm of the bar, post or table joining it. The least-squares
+    diameter's error, the form range PF (range of radial residuals), the spacing's error; and
+    the points' noise (1.4826 MAD of the residuals) with the range that noise alone gives that
+    many Gaussian points (about 2 sigma sqrt(2 ln N))."""
     spheres = [o for o in truth.objects if o.type == "sphere"]
     others = [o for o in truth.objects if o.type != "sphere"]
     apart = np.ones(len(points), bool)
     for obj in others:
-        apart &= _surface_distance(points, obj) > 1.5
+        apart &= surface_distance(points, obj) > 1.5
     out: dict[str, float] = {}
     centres = []
     for k, obj in enumerate(spheres, start=1):
         c0 = np.asarray(obj.params["center_mm"], dtype=np.float64)
         r0 = 0.5 * float(obj.params["diameter_mm"])
-        near = points[(_surface_distance(points, obj) < 1.5) & apart]
+        near = points[(surface_distance(points, obj) < 1.5) & apart]
         fit = least_squares(
             lambda x, p=near: np.linalg.norm(p - x[:3], axis=1) - x[3], np.append(c0, r0)
         )

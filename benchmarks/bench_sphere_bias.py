@@ -1,0 +1,193 @@
+"""Where the spheres' diameter errors come from: a diagnosis on rendered sweeps (issues #16, #19).
+
+The modern cell's sphere_2 comes out 0.02-0.03 mm too large where sphere_1, the same sphere
+on the same bar, is within 0.01 mm. This benchmark takes the sweep (seed 0, true calibration)
+apart, case by case:
+
+* ``modern``: the cell as shipped;
+* ``clean``: no speckle, no robot pose error, no sensor noise (what is left is the geometry:
+  the stripe's own shape on a curved surface, and which part of each sphere is seen);
+* ``clean, no bar``: the same without the bar and post joining the spheres;
+* ``clean, long sweep``: the same with 380 frames instead of 300 (sphere_2 lies at the
+  sweep's end);
+* ``randomised 0``: randomised sensor 0 as :mod:`bench_stretch_ends` draws it.
+
+Three tables per case:
+
+1. in the image, each extracted centre's error along its scan line against the rendered
+   stripe, per surface, for the points with no flag and for the saturated ones, both modes:
+   the median (a bias) and the RMS;
+2. in the cloud (true calibration, the laser origin from the truth, ``keep_flagged``), each
+   sphere's least-squares diameter error (:func:`bench_laser_origin.sphere_figures`) for the
+   points the default cloud holds (flags 0), for those and the saturated ones, each without and
+   with the 65 deg incidence limit;
+3. the default cloud's (fast mode, flags 0) radial error against each true sphere, by the
+   point's elevation above the sphere's equator.
+
+    python benchmarks/bench_sphere_bias.py [--work /tmp/bench_sphere_bias] [--cases ...]
+
+The sweeps are rendered once into ``--work`` (about 4 min each on one core).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+from bench_laser_origin import sphere_figures, surface_distance
+
+from scanner.app import stages
+from scanner.formats.clouds import cloud_arrays, read_cloud
+from scanner.formats.session import read_session
+from scanner.scanning.pipeline import ScanOptions
+from scanner.stripe.extract import extract_stripe
+from scanner.stripe.profile import StripeFlag
+from scanner.virtual_cell.cell import CellConfig, load_cell
+from scanner.virtual_cell.random_cell import randomised_cell
+from scanner.virtual_cell.truth import CellTruth, StripeTable, along_line_errors, read_truth
+
+SAT = int(StripeFlag.SATURATED)
+GRAZING = int(StripeFlag.GRAZING)
+INCIDENCE_DEG = 65.0
+
+
+def _clean(cell: CellConfig) -> CellConfig:
+    return dataclasses.replace(
+        cell,
+        laser=dataclasses.replace(cell.laser, speckle_contrast=0.0),
+        robot=dataclasses.replace(cell.robot, repeatability_mm=0.0, repeatability_deg=0.0),
+        imaging=dataclasses.replace(cell.imaging, read_noise_e=0.0, full_well_e=1e9),
+    )
+
+
+def cases() -> dict[str, CellConfig]:
+    modern = load_cell("modern")
+    clean = _clean(modern)
+    no_bar = tuple(o for o in clean.sweep.objects if o.id not in ("bar", "post"))
+    return {
+        "modern": modern,
+        "clean": clean,
+        "clean, no bar": dataclasses.replace(
+            clean, sweep=dataclasses.replace(clean.sweep, objects=no_bar)
+        ),
+        "clean, long sweep": dataclasses.replace(
+            clean, sweep=dataclasses.replace(clean.sweep, frames=380)
+        ),
+        "randomised 0": randomised_cell(modern, np.random.default_rng(10_000)),
+    }
+
+
+def image_errors(sim: Path, mode: str) -> dict[tuple[str, str], np.ndarray]:
+    """Along-line errors (px) of every sweep frame's centres, keyed (surface, kind)."""
+    session = read_session(sim / "sweep")
+    table = StripeTable.load(sim / "sweep_stripes.npz")
+    out: dict[tuple[str, str], list[np.ndarray]] = {}
+    for f in session.frames:
+        p = extract_stripe(session.load_laser_image(f), mode=mode, orientation="auto")
+        uv_true, surface = table.of_frame(f.id)
+        if len(p) < 2 or len(uv_true) < 2:
+            continue
+        e, dist, nearest, ok = along_line_errors(p.uv, p.orientation, uv_true)
+        ok &= dist < 2.0
+        for kind, sel in (("no flag", p.flags == 0), ("saturated", p.flags == SAT)):
+            for name in np.unique(surface[nearest[ok & sel]]):
+                pick = ok & sel & (surface[nearest] == name)
+                out.setdefault((str(name), kind), []).append(e[pick])
+    return {k: np.concatenate(v) for k, v in out.items()}
+
+
+def elevation_errors(points: np.ndarray, truth: CellTruth) -> dict[str, list[tuple]]:
+    """Per sphere: (band, count, mean radial error mm) by elevation above its equator, of the
+    points within 1.5 mm of it and not within 1.5 mm of anything else (as
+    :func:`bench_laser_origin.sphere_figures` takes them)."""
+    bands = [(0, 20), (20, 35), (35, 50), (50, 65), (65, 91)]
+    apart = np.ones(len(points), bool)
+    for obj in truth.objects:
+        if obj.type != "sphere":
+            apart &= surface_distance(points, obj) > 1.5
+    points = points[apart]
+    out: dict[str, list[tuple]] = {}
+    for obj in truth.objects:
+        if obj.type != "sphere":
+            continue
+        c0 = np.asarray(obj.params["center_mm"], dtype=np.float64)
+        q = points - c0
+        r = np.linalg.norm(q, axis=1)
+        radial = r - 0.5 * float(obj.params["diameter_mm"])
+        near = np.abs(radial) < 1.5
+        elev = np.degrees(np.arcsin(np.clip(q[near, 2] / r[near], -1.0, 1.0)))
+        out[obj.id] = [
+            (f"{a}-{b}", int(m.sum()), float(radial[near][m].mean()) if m.any() else np.nan)
+            for a, b in bands
+            for m in [(elev >= a) & (elev < b)]
+        ]
+    return out
+
+
+def run_case(name: str, cell: CellConfig, work: Path, rescan: bool) -> None:
+    sim = work / name.replace(", ", "-").replace(" ", "-")
+    if not (sim / "truth.json").is_file():
+        stages.simulate(cell, sim, seed=0, sessions=("sweep",), workers=2)
+    truth = read_truth(sim / "truth.json")
+    print(f"\n### {name}\n")
+    print("In the image: error along the scan line against the rendered stripe (px)\n")
+    print("| mode | surface | points | count | median | RMS |\n|---|---|---|---:|---:|---:|")
+    for mode in ("fast", "precise"):
+        for (surface, kind), e in sorted(image_errors(sim, mode).items()):
+            if surface == "table" or e.size < 50:
+                continue
+            rms = float(np.sqrt(np.mean(e**2)))
+            print(f"| {mode} | {surface} | {kind} | {e.size} | {np.median(e):+.3f} | {rms:.3f} |")
+    print("\nIn the cloud: sphere diameter error (mm) and points, per selection\n")
+    print("| mode | points kept | sphere_1 | sphere_2 | spacing |\n|---|---|---:|---:|---:|")
+    for mode in ("fast", "precise"):
+        cloud = sim / f"cloud_{mode}.ply"
+        if rescan or not cloud.is_file():
+            options = ScanOptions(
+                mode=mode,
+                keep_flagged=True,
+                max_incidence_deg=INCIDENCE_DEG,
+                laser_origin_mm=tuple(float(x) for x in truth.laser_origin_cam),
+            )
+            stages.scan([sim / "sweep"], sim / "calibration_true.json", cloud, options=options)
+        arrays = cloud_arrays(read_cloud(cloud))
+        points, flags = arrays["positions"], arrays["flags"].ravel().astype(int)
+        selections = {
+            "flags 0 (the default cloud)": (flags & ~GRAZING) == 0,
+            "flags 0 or saturated": (flags & ~(GRAZING | SAT)) == 0,
+            f"flags 0, incidence <= {INCIDENCE_DEG:g} deg": flags == 0,
+            f"flags 0 or saturated, incidence <= {INCIDENCE_DEG:g} deg": (flags & ~SAT) == 0,
+        }
+        for label, keep in selections.items():
+            f = sphere_figures(points[keep], truth)
+            print(
+                f"| {mode} | {label} | {f['sphere_1 diameter error']:+.4f} "
+                f"({f['sphere_1 points']:.0f}) | {f['sphere_2 diameter error']:+.4f} "
+                f"({f['sphere_2 points']:.0f}) | {f['spacing error']:+.4f} |"
+            )
+        if mode == "fast":
+            by_band = elevation_errors(points[(flags & ~GRAZING) == 0], truth)
+    print("\nThe default cloud (fast, flags 0): mean radial error (mm) by elevation, points\n")
+    bands = [b for b, _, _ in next(iter(by_band.values()))]
+    print("| sphere | " + " | ".join(f"{b} deg" for b in bands) + " |")
+    print("|---|" + "---:|" * len(bands))
+    for sphere, rows in by_band.items():
+        cells = [f"{m:+.4f} ({n})" if n else "-" for _, n, m in rows]
+        print(f"| {sphere} | " + " | ".join(cells) + " |")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--work", type=Path, default=Path("/tmp/bench_sphere_bias"))
+    ap.add_argument("--cases", nargs="*", help="case names (default all)")
+    ap.add_argument("--rescan", action="store_true", help="scan again (clouds are cached)")
+    args = ap.parse_args()
+    for name, cell in cases().items():
+        if not args.cases or name in args.cases:
+            run_case(name, cell, args.work, args.rescan)
+
+
+if __name__ == "__main__":
+    main()
