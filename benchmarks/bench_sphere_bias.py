@@ -16,7 +16,9 @@ Three tables per case:
 
 1. in the image, each extracted centre's error along its scan line against the rendered
    stripe, per surface, for the points with no flag and for the saturated ones, both modes:
-   the median (a bias) and the RMS;
+   the median (a bias) and the RMS (the frames extracted again with the default options and
+   ``orientation="auto"``, not the scan's per-sweep ones: the same points, as the counts
+   show);
 2. in the cloud (true calibration, the laser origin from the truth, ``keep_flagged``), each
    sphere's least-squares diameter error (:func:`bench_laser_origin.sphere_figures`) for the
    points the default cloud holds (flags 0), for those and the saturated ones, each without and
@@ -24,9 +26,12 @@ Three tables per case:
 3. the default cloud's (fast mode, flags 0) radial error against each true sphere, by the
    point's elevation above the sphere's equator.
 
-    python benchmarks/bench_sphere_bias.py [--work /tmp/bench_sphere_bias] [--cases ...]
+    python benchmarks/bench_sphere_bias.py [--work /tmp/bench_sphere_bias]
+        [--cases modern clean clean-no-bar clean-long-sweep randomised-0] [--rescan]
 
-The sweeps are rendered once into ``--work`` (about 4 min each on one core).
+The sweeps are rendered once into ``--work`` (about 4 min each with two processes on this
+machine's two cores); the clouds are kept too, so after a change to the scan pass
+``--rescan``.
 """
 
 from __future__ import annotations
@@ -54,6 +59,7 @@ INCIDENCE_DEG = 65.0
 
 
 def _clean(cell: CellConfig) -> CellConfig:
+    """The cell without speckle, robot pose error or sensor noise."""
     return dataclasses.replace(
         cell,
         laser=dataclasses.replace(cell.laser, speckle_contrast=0.0),
@@ -63,19 +69,20 @@ def _clean(cell: CellConfig) -> CellConfig:
 
 
 def cases() -> dict[str, CellConfig]:
+    """The cases by name, each also the name of its folder under ``--work``."""
     modern = load_cell("modern")
     clean = _clean(modern)
     no_bar = tuple(o for o in clean.sweep.objects if o.id not in ("bar", "post"))
     return {
         "modern": modern,
         "clean": clean,
-        "clean, no bar": dataclasses.replace(
+        "clean-no-bar": dataclasses.replace(
             clean, sweep=dataclasses.replace(clean.sweep, objects=no_bar)
         ),
-        "clean, long sweep": dataclasses.replace(
+        "clean-long-sweep": dataclasses.replace(
             clean, sweep=dataclasses.replace(clean.sweep, frames=380)
         ),
-        "randomised 0": randomised_cell(modern, np.random.default_rng(10_000)),
+        "randomised-0": randomised_cell(modern, np.random.default_rng(10_000)),
     }
 
 
@@ -98,17 +105,19 @@ def image_errors(sim: Path, mode: str) -> dict[tuple[str, str], np.ndarray]:
     return {k: np.concatenate(v) for k, v in out.items()}
 
 
-def elevation_errors(points: np.ndarray, truth: CellTruth) -> dict[str, list[tuple]]:
+def elevation_errors(
+    points: np.ndarray, truth: CellTruth
+) -> dict[str, list[tuple[str, int, float]]]:
     """Per sphere: (band, count, mean radial error mm) by elevation above its equator, of the
     points within 1.5 mm of it and not within 1.5 mm of anything else (as
     :func:`bench_laser_origin.sphere_figures` takes them)."""
-    bands = [(0, 20), (20, 35), (35, 50), (50, 65), (65, 91)]
+    bands = [(-91, 0), (0, 20), (20, 35), (35, 50), (50, 65), (65, 91)]
     apart = np.ones(len(points), bool)
     for obj in truth.objects:
         if obj.type != "sphere":
             apart &= surface_distance(points, obj) > 1.5
     points = points[apart]
-    out: dict[str, list[tuple]] = {}
+    out: dict[str, list[tuple[str, int, float]]] = {}
     for obj in truth.objects:
         if obj.type != "sphere":
             continue
@@ -126,8 +135,26 @@ def elevation_errors(points: np.ndarray, truth: CellTruth) -> dict[str, list[tup
     return out
 
 
+def _cloud(sim: Path, truth: CellTruth, mode: str, rescan: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The sweep's cloud with every point kept and the incidence limit flagged (scanned once
+    into ``sim``): positions (N, 3) mm, base frame, and flags (N,)."""
+    cloud = sim / f"cloud_{mode}.ply"
+    if rescan or not cloud.is_file():
+        options = ScanOptions(
+            mode=mode,
+            keep_flagged=True,
+            max_incidence_deg=INCIDENCE_DEG,
+            laser_origin_mm=tuple(float(x) for x in truth.laser_origin_cam),
+        )
+        stages.scan([sim / "sweep"], sim / "calibration_true.json", cloud, options=options)
+    arrays = cloud_arrays(read_cloud(cloud))
+    return arrays["positions"], arrays["flags"].ravel().astype(int)
+
+
 def run_case(name: str, cell: CellConfig, work: Path, rescan: bool) -> None:
-    sim = work / name.replace(", ", "-").replace(" ", "-")
+    """Render the case's sweep (once), scan it in both modes (once, or again with ``rescan``)
+    and print its three tables."""
+    sim = work / name
     if not (sim / "truth.json").is_file():
         stages.simulate(cell, sim, seed=0, sessions=("sweep",), workers=2)
     truth = read_truth(sim / "truth.json")
@@ -143,17 +170,7 @@ def run_case(name: str, cell: CellConfig, work: Path, rescan: bool) -> None:
     print("\nIn the cloud: sphere diameter error (mm) and points, per selection\n")
     print("| mode | points kept | sphere_1 | sphere_2 | spacing |\n|---|---|---:|---:|---:|")
     for mode in ("fast", "precise"):
-        cloud = sim / f"cloud_{mode}.ply"
-        if rescan or not cloud.is_file():
-            options = ScanOptions(
-                mode=mode,
-                keep_flagged=True,
-                max_incidence_deg=INCIDENCE_DEG,
-                laser_origin_mm=tuple(float(x) for x in truth.laser_origin_cam),
-            )
-            stages.scan([sim / "sweep"], sim / "calibration_true.json", cloud, options=options)
-        arrays = cloud_arrays(read_cloud(cloud))
-        points, flags = arrays["positions"], arrays["flags"].ravel().astype(int)
+        points, flags = _cloud(sim, truth, mode, rescan)
         selections = {
             "flags 0 (the default cloud)": (flags & ~GRAZING) == 0,
             "flags 0 or saturated": (flags & ~(GRAZING | SAT)) == 0,
@@ -167,8 +184,8 @@ def run_case(name: str, cell: CellConfig, work: Path, rescan: bool) -> None:
                 f"({f['sphere_1 points']:.0f}) | {f['sphere_2 diameter error']:+.4f} "
                 f"({f['sphere_2 points']:.0f}) | {f['spacing error']:+.4f} |"
             )
-        if mode == "fast":
-            by_band = elevation_errors(points[(flags & ~GRAZING) == 0], truth)
+    points, flags = _cloud(sim, truth, "fast", rescan=False)
+    by_band = elevation_errors(points[(flags & ~GRAZING) == 0], truth)
     print("\nThe default cloud (fast, flags 0): mean radial error (mm) by elevation, points\n")
     bands = [b for b, _, _ in next(iter(by_band.values()))]
     print("| sphere | " + " | ".join(f"{b} deg" for b in bands) + " |")
