@@ -63,7 +63,9 @@ class Plc:
             "probe": words_to_int32(r[13], r[14]),
         }
 
-    def wait(self, until: Callable[[dict[str, int]], bool], timeout: float = 10.0) -> dict:
+    def wait(self, until: Callable[[dict[str, int]], bool], timeout: float = 60.0) -> dict:
+        """Poll the status until ``until`` holds (the timeout is only a hang guard: a job on a
+        spawned process can take many seconds to start on a loaded machine)."""
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             st = self.status()
