@@ -91,6 +91,16 @@ def surface_distance(points: np.ndarray, obj: ObjectTruth) -> np.ndarray:
     return np.full(len(points), np.inf)
 
 
+def apart_from_others(points: np.ndarray, truth: CellTruth, gap_mm: float = 1.5) -> np.ndarray:
+    """Which of ``points`` (N, 3) lie more than ``gap_mm`` from every true object that is not a
+    sphere (the bar, post and table joining the spheres): (N,) bool."""
+    apart = np.ones(len(points), bool)
+    for obj in truth.objects:
+        if obj.type != "sphere":
+            apart &= surface_distance(points, obj) > gap_mm
+    return apart
+
+
 def cloud_sphere_figures(cloud_path: Path, truth: CellTruth) -> dict[str, float]:
     """The cloud as written, every point within 1.5 mm of each true sphere (and not within
     1.5 mm of the bar, post or table joining it): :func:`sphere_figures` of its points."""
@@ -104,10 +114,7 @@ def sphere_figures(points: np.ndarray, truth: CellTruth) -> dict[str, float]:
     the points' noise (1.4826 MAD of the residuals) with the range that noise alone gives that
     many Gaussian points (about 2 sigma sqrt(2 ln N))."""
     spheres = [o for o in truth.objects if o.type == "sphere"]
-    others = [o for o in truth.objects if o.type != "sphere"]
-    apart = np.ones(len(points), bool)
-    for obj in others:
-        apart &= surface_distance(points, obj) > 1.5
+    apart = apart_from_others(points, truth)
     out: dict[str, float] = {}
     centres = []
     for k, obj in enumerate(spheres, start=1):

@@ -41,7 +41,7 @@ import dataclasses
 from pathlib import Path
 
 import numpy as np
-from bench_laser_origin import sphere_figures, surface_distance
+from bench_laser_origin import apart_from_others, sphere_figures
 
 from scanner.app import stages
 from scanner.formats.clouds import cloud_arrays, read_cloud
@@ -112,11 +112,7 @@ def elevation_errors(
     points within 1.5 mm of it and not within 1.5 mm of anything else (as
     :func:`bench_laser_origin.sphere_figures` takes them)."""
     bands = [(-91, 0), (0, 20), (20, 35), (35, 50), (50, 65), (65, 91)]
-    apart = np.ones(len(points), bool)
-    for obj in truth.objects:
-        if obj.type != "sphere":
-            apart &= surface_distance(points, obj) > 1.5
-    points = points[apart]
+    points = points[apart_from_others(points, truth)]
     out: dict[str, list[tuple[str, int, float]]] = {}
     for obj in truth.objects:
         if obj.type != "sphere":
