@@ -164,7 +164,7 @@ def test_quick_connect_and_close_cycles_do_not_lock_out_the_next_client(
         with connect(svc.port, timeout=5.0) as sock:
             sock.sendall(adu(99, read_pdu(113, 2)))
             assert recv_adu(sock)[0] == 99  # accepted at once, not reset
-        assert time.monotonic() - t0 < 2.0
+        assert time.monotonic() - t0 < 4.0  # not after a socket timeout (5 s)
 
 
 # Item 11 (c): no worker-pool process outlives the service ------------------------------------

@@ -156,7 +156,7 @@ def test_idle_connections_are_closed(tmp_path: Path):
         recv_adu(sock)
         t0 = time.monotonic()
         assert is_closed_by_peer(sock, timeout=5.0)
-        assert 0.3 < time.monotonic() - t0 < 3.0
+        assert 0.3 < time.monotonic() - t0 < 4.5  # not at once, and before the 5 s guard
 
 
 def test_a_busy_client_is_not_idle(tmp_path: Path):

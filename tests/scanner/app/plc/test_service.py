@@ -247,7 +247,9 @@ def test_watchdog_aborts_when_plc_heartbeat_stops(tmp_path: Path):
         t0 = time.monotonic()
         assert plc.write(0, [1, 1, 0, 100]) == 0  # 10 s job, heartbeat never changes
         st = plc.wait(done)
-        assert time.monotonic() - t0 < 3.0
+        # aborted by the 0.5 s heartbeat timeout, long before the job's own 10 s (the bound
+        # leaves room for a loaded machine)
+        assert time.monotonic() - t0 < 7.0
         assert st["bits"] == Status.READY | Status.ERROR
         assert (st["error"], st["state"]) == (ErrorCode.WATCHDOG, State.ERROR)
         plc.close()
@@ -332,7 +334,7 @@ def test_stop_during_an_uncooperative_job_records_it_interrupted(tmp_path: Path)
         plc.close()
         t0 = time.monotonic()
         svc.shutdown()
-        assert time.monotonic() - t0 < 5.0
+        assert time.monotonic() - t0 < 15.0  # the job would hold it 30 s
     (rec,) = _history(config)
     assert (rec.state, rec.error_code) == ("interrupted", ErrorCode.INTERRUPTED)
     with running_service(config, FakeJobs(config)) as svc:  # shown to the PLC after restart
