@@ -28,6 +28,11 @@ Three tables per case:
 
     python benchmarks/bench_sphere_bias.py [--work /tmp/bench_sphere_bias]
         [--cases modern clean clean-no-bar clean-long-sweep randomised-0] [--rescan]
+    python benchmarks/bench_sphere_bias.py --coverage-cache /work/unc_cache
+
+The second form takes the second table over every randomised seed a coverage run of
+``bench_uncertainty.py --randomised`` rendered (fast mode only): which points to keep, judged
+over the randomised domain instead of one sensor.
 
 The sweeps are rendered once into ``--work`` (about 4 min each with two processes on this
 machine's two cores); the clouds are kept too, so after a change to the scan pass
@@ -42,16 +47,15 @@ from pathlib import Path
 
 import numpy as np
 from bench_laser_origin import apart_from_others, sphere_figures
+from bench_stretch_ends import sweep_centre_errors
 
 from scanner.app import stages
 from scanner.formats.clouds import cloud_arrays, read_cloud
-from scanner.formats.session import read_session
 from scanner.scanning.pipeline import ScanOptions
-from scanner.stripe.extract import extract_stripe
 from scanner.stripe.profile import StripeFlag
 from scanner.virtual_cell.cell import CellConfig, load_cell
 from scanner.virtual_cell.random_cell import randomised_cell
-from scanner.virtual_cell.truth import CellTruth, StripeTable, along_line_errors, read_truth
+from scanner.virtual_cell.truth import CellTruth, read_truth
 
 SAT = int(StripeFlag.SATURATED)
 GRAZING = int(StripeFlag.GRAZING)
@@ -88,20 +92,13 @@ def cases() -> dict[str, CellConfig]:
 
 def image_errors(sim: Path, mode: str) -> dict[tuple[str, str], np.ndarray]:
     """Along-line errors (px) of every sweep frame's centres, keyed (surface, kind)."""
-    session = read_session(sim / "sweep")
-    table = StripeTable.load(sim / "sweep_stripes.npz")
     out: dict[tuple[str, str], list[np.ndarray]] = {}
-    for f in session.frames:
-        p = extract_stripe(session.load_laser_image(f), mode=mode, orientation="auto")
-        uv_true, surface = table.of_frame(f.id)
-        if len(p) < 2 or len(uv_true) < 2:
-            continue
-        e, dist, nearest, ok = along_line_errors(p.uv, p.orientation, uv_true)
-        ok &= dist < 2.0
-        for kind, sel in (("no flag", p.flags == 0), ("saturated", p.flags == SAT)):
-            for name in np.unique(surface[nearest[ok & sel]]):
-                pick = ok & sel & (surface[nearest] == name)
-                out.setdefault((str(name), kind), []).append(e[pick])
+    for fe in sweep_centre_errors(sim, mode=mode):
+        flags = fe.profile.flags
+        for kind, sel in (("no flag", flags == 0), ("saturated", flags == SAT)):
+            for name in np.unique(fe.surface[fe.matched & sel]):
+                pick = fe.matched & sel & (fe.surface == name)
+                out.setdefault((str(name), kind), []).append(fe.error_px[pick])
     return {k: np.concatenate(v) for k, v in out.items()}
 
 
@@ -131,10 +128,13 @@ def elevation_errors(
     return out
 
 
-def _cloud(sim: Path, truth: CellTruth, mode: str, rescan: bool) -> tuple[np.ndarray, np.ndarray]:
+def _cloud(
+    sim: Path, truth: CellTruth, mode: str, rescan: bool, out: Path | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """The sweep's cloud with every point kept and the incidence limit flagged (scanned once
-    into ``sim``): positions (N, 3) mm, base frame, and flags (N,)."""
-    cloud = sim / f"cloud_{mode}.ply"
+    into ``out``, by default ``sim``): positions (N, 3) mm, base frame, and flags (N,)."""
+    cloud = (out or sim) / f"cloud_{mode}.ply"
+    cloud.parent.mkdir(parents=True, exist_ok=True)
     if rescan or not cloud.is_file():
         options = ScanOptions(
             mode=mode,
@@ -145,6 +145,44 @@ def _cloud(sim: Path, truth: CellTruth, mode: str, rescan: bool) -> tuple[np.nda
         stages.scan([sim / "sweep"], sim / "calibration_true.json", cloud, options=options)
     arrays = cloud_arrays(read_cloud(cloud))
     return arrays["positions"], arrays["flags"].ravel().astype(int)
+
+
+def selections(flags: np.ndarray) -> dict[str, np.ndarray]:
+    """The points each selection keeps, by its label: (N,) bool."""
+    return {
+        "flags 0 (the default cloud)": (flags & ~GRAZING) == 0,
+        "flags 0 or saturated": (flags & ~(GRAZING | SAT)) == 0,
+        f"flags 0, incidence <= {INCIDENCE_DEG:g} deg": flags == 0,
+        f"flags 0 or saturated, incidence <= {INCIDENCE_DEG:g} deg": (flags & ~SAT) == 0,
+    }
+
+
+def run_coverage_seeds(cache: Path, work: Path, rescan: bool) -> None:
+    """The cloud table (fast mode) over every randomised seed of a coverage cache
+    (``bench_uncertainty.py --randomised --work CACHE``): each seed's rendered sweep scanned
+    with its true calibration into ``work``, and per selection the mean, RMS and largest
+    absolute diameter error of each sphere over the seeds."""
+    sims = sorted(d / "sim" for d in cache.glob("randomised-*") if (d / "result.json").is_file())
+    errors: dict[str, list[list[float]]] = {}
+    for sim in sims:
+        truth = read_truth(sim / "truth.json")
+        points, flags = _cloud(sim, truth, "fast", rescan, out=work / sim.parent.name)
+        for label, keep in selections(flags).items():
+            f = sphere_figures(points[keep], truth)
+            row = [f["sphere_1 diameter error"], f["sphere_2 diameter error"]]
+            errors.setdefault(label, []).append(row)
+            print(f"{sim.parent.name} | {label} | {row[0]:+.4f} | {row[1]:+.4f}", flush=True)
+    print(f"\n### Randomised seeds of {cache} ({len(sims)}), fast mode, true calibration\n")
+    print("Sphere diameter error over the seeds (mm): mean / RMS / largest absolute\n")
+    print("| points kept | sphere_1 | sphere_2 |\n|---|---:|---:|")
+    for label, rows in errors.items():
+        e = np.asarray(rows)
+        cells = [
+            f"{e[:, j].mean():+.4f} / {np.sqrt(np.mean(e[:, j] ** 2)):.4f} / "
+            f"{np.abs(e[:, j]).max():.4f}"
+            for j in range(2)
+        ]
+        print(f"| {label} | {cells[0]} | {cells[1]} |")
 
 
 def run_case(name: str, cell: CellConfig, work: Path, rescan: bool) -> None:
@@ -167,13 +205,7 @@ def run_case(name: str, cell: CellConfig, work: Path, rescan: bool) -> None:
     print("| mode | points kept | sphere_1 | sphere_2 | spacing |\n|---|---|---:|---:|---:|")
     for mode in ("fast", "precise"):
         points, flags = _cloud(sim, truth, mode, rescan)
-        selections = {
-            "flags 0 (the default cloud)": (flags & ~GRAZING) == 0,
-            "flags 0 or saturated": (flags & ~(GRAZING | SAT)) == 0,
-            f"flags 0, incidence <= {INCIDENCE_DEG:g} deg": flags == 0,
-            f"flags 0 or saturated, incidence <= {INCIDENCE_DEG:g} deg": (flags & ~SAT) == 0,
-        }
-        for label, keep in selections.items():
+        for label, keep in selections(flags).items():
             f = sphere_figures(points[keep], truth)
             print(
                 f"| {mode} | {label} | {f['sphere_1 diameter error']:+.4f} "
@@ -196,7 +228,16 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=Path("/tmp/bench_sphere_bias"))
     ap.add_argument("--cases", nargs="*", help="case names (default all)")
     ap.add_argument("--rescan", action="store_true", help="scan again (clouds are cached)")
+    ap.add_argument(
+        "--coverage-cache",
+        type=Path,
+        help="instead of the cases: the cloud table over the randomised seeds of this "
+        "bench_uncertainty cache",
+    )
     args = ap.parse_args()
+    if args.coverage_cache is not None:
+        run_coverage_seeds(args.coverage_cache, args.work / "coverage", args.rescan)
+        return
     for name, cell in cases().items():
         if not args.cases or name in args.cases:
             run_case(name, cell, args.work, args.rescan)

@@ -19,7 +19,10 @@ the extractor or the scan pass ``--rescan``.
 from __future__ import annotations
 
 import argparse
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from bench_laser_origin import cloud_sphere_figures
@@ -29,28 +32,47 @@ from scanner.formats.clouds import cloud_arrays, read_cloud
 from scanner.formats.session import read_session
 from scanner.scanning.pipeline import ScanOptions
 from scanner.stripe.extract import extract_stripe
-from scanner.stripe.profile import StripeFlag, StripeOptions
+from scanner.stripe.profile import StripeFlag, StripeOptions, StripeProfile
 from scanner.virtual_cell.cell import load_cell
 from scanner.virtual_cell.random_cell import randomised_cell
 from scanner.virtual_cell.truth import CellTruth, StripeTable, along_line_errors, read_truth
 
 
+@dataclass(frozen=True)
+class FrameErrors:
+    """One sweep frame's extracted centres against the rendered stripe."""
+
+    profile: StripeProfile
+    error_px: np.ndarray
+    """(N,) each centre's error along its scan line."""
+    surface: np.ndarray
+    """(N,) the surface of the rendered point each centre was matched to."""
+    matched: np.ndarray
+    """(N,) bool: a rendered point lies within 2 px of the centre."""
+
+
+def sweep_centre_errors(sim: Path, every: int = 1, **extract: Any) -> Iterator[FrameErrors]:
+    """Every ``every``-th frame of ``sim``'s sweep extracted (``extract_stripe`` with
+    ``orientation="auto"`` and ``extract``) and matched to the rendered stripe."""
+    session = read_session(sim / "sweep")
+    table = StripeTable.load(sim / "sweep_stripes.npz")
+    for f in session.frames[::every]:
+        p = extract_stripe(session.load_laser_image(f), orientation="auto", **extract)
+        uv_true, surface = table.of_frame(f.id)
+        if len(p) < 2 or len(uv_true) < 2:
+            continue
+        e, dist, nearest, ok = along_line_errors(p.uv, p.orientation, uv_true)
+        yield FrameErrors(p, e, np.asarray(surface)[nearest], ok & (dist < 2.0))
+
+
 def image_errors(sim: Path, end_lines: int, every: int = 4) -> dict[str, tuple[int, float]]:
     """Points and RMS error (px) along the scan line: flagged STRETCH_END only (``end_lines``
     lines, the flag being off by default), and clean."""
-    session = read_session(sim / "sweep")
-    table = StripeTable.load(sim / "sweep_stripes.npz")
     errs: dict[str, list[np.ndarray]] = {"stretch end": [], "clean": []}
-    for f in session.frames[::every]:
-        image = session.load_laser_image(f)
-        p = extract_stripe(image, mode="precise", orientation="auto", end_lines=end_lines)
-        uv_true, _ = table.of_frame(f.id)
-        if len(p) < 2 or len(uv_true) < 2:
-            continue
-        e, dist, _, ok = along_line_errors(p.uv, p.orientation, uv_true)
-        ok &= dist < 2.0
-        errs["stretch end"].append(e[ok & (p.flags == StripeFlag.STRETCH_END)])
-        errs["clean"].append(e[ok & (p.flags == 0)])
+    for fe in sweep_centre_errors(sim, every, mode="precise", end_lines=end_lines):
+        flags = fe.profile.flags
+        errs["stretch end"].append(fe.error_px[fe.matched & (flags == StripeFlag.STRETCH_END)])
+        errs["clean"].append(fe.error_px[fe.matched & (flags == 0)])
     out = {}
     for name, parts in errs.items():
         e = np.concatenate(parts)
