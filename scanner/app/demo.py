@@ -124,7 +124,9 @@ def run_demo(
                 [job.session("sweep")],
                 job.calibration,
                 job.cloud,
-                options=ScanOptions(mode="precise", workers=2),
+                # the default stripe mode, as `scanner scan` runs it: the plans' instrument
+                # figures (their acceptance tests) are that mode's
+                options=ScanOptions(workers=2),
                 progress=progress,
             ).result
         ),
