@@ -28,7 +28,7 @@ Three tables per case:
 
     python benchmarks/bench_sphere_bias.py [--work /tmp/bench_sphere_bias]
         [--cases modern clean clean-no-bar clean-long-sweep randomised-0] [--rescan]
-    python benchmarks/bench_sphere_bias.py --coverage-cache /work/unc_cache
+    python benchmarks/bench_sphere_bias.py --coverage-cache /work/unc_cache [--work ...] [--rescan]
 
 The second form takes the second table over every randomised seed a coverage run of
 ``bench_uncertainty.py --randomised`` rendered (fast mode only): which points to keep, judged
@@ -202,6 +202,8 @@ def run_coverage_seeds(cache: Path, work: Path, rescan: bool) -> None:
     with its true calibration into ``work``, and per selection the mean, RMS and largest
     absolute diameter error of each sphere over the seeds."""
     sims = sorted(d / "sim" for d in cache.glob("randomised-*") if (d / "result.json").is_file())
+    if not sims:
+        raise SystemExit(f"{cache}: no randomised-*/result.json (not a coverage cache)")
     errors: dict[str, list[list[float]]] = {}
     for sim in sims:
         truth = read_truth(sim / "truth.json")

@@ -40,20 +40,31 @@ from scanner.virtual_cell.truth import CellTruth, StripeTable, along_line_errors
 
 @dataclass(frozen=True)
 class FrameErrors:
-    """One sweep frame's extracted centres against the rendered stripe."""
+    """One sweep frame's extracted centres against the rendered stripe.
+
+    Attributes
+    ----------
+    profile : StripeProfile
+        The frame's N extracted centres.
+    error_px : ndarray, shape (N,)
+        Each centre's error along its scan line.
+    surface : ndarray, shape (N,)
+        The surface of the rendered sample nearest each centre.
+    matched : ndarray, shape (N,), bool
+        The centre lies within 2 px of its nearest rendered sample and the rendered stripe
+        crosses its scan line there (``along_line_errors``' ``ok``).
+    """
 
     profile: StripeProfile
     error_px: np.ndarray
-    """(N,) each centre's error along its scan line."""
     surface: np.ndarray
-    """(N,) the surface of the rendered point each centre was matched to."""
     matched: np.ndarray
-    """(N,) bool: a rendered point lies within 2 px of the centre."""
 
 
 def sweep_centre_errors(sim: Path, every: int = 1, **extract: Any) -> Iterator[FrameErrors]:
     """Every ``every``-th frame of ``sim``'s sweep extracted (``extract_stripe`` with
-    ``orientation="auto"`` and ``extract``) and matched to the rendered stripe."""
+    ``orientation="auto"`` and ``extract``) and matched to the rendered stripe; frames with
+    fewer than two centres or two rendered samples are skipped."""
     session = read_session(sim / "sweep")
     table = StripeTable.load(sim / "sweep_stripes.npz")
     for f in session.frames[::every]:

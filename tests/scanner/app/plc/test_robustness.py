@@ -140,7 +140,7 @@ def test_bytes_of_a_partial_frame_do_not_rearm_the_idle_timer(tmp_path: Path):
                 closed_after = time.monotonic() - t0
                 break
     assert closed_after is not None, "a client trickling one byte every 0.4 s was never closed"
-    assert closed_after < idle + 2.0
+    assert closed_after < idle + 4.0  # a re-armed timer would take about 100 s
 
 
 # Item 11 (b): the connection count drops as soon as a client has gone ------------------------
