@@ -117,6 +117,9 @@ def run_demo(
             stages.check(job.session("check"), job.calibration, job.check, progress=progress).result
         ),
     )
+    # the default stripe mode, as `scanner scan` runs it: the modern plan's instrument figures
+    # (its acceptance test) are that mode's
+    scan_options = ScanOptions(workers=2)
     scan = stage(
         "scan",
         lambda: (
@@ -124,9 +127,7 @@ def run_demo(
                 [job.session("sweep")],
                 job.calibration,
                 job.cloud,
-                # the default stripe mode, as `scanner scan` runs it: the plans' instrument
-                # figures (their acceptance tests) are that mode's
-                options=ScanOptions(workers=2),
+                options=scan_options,
                 progress=progress,
             ).result
         ),
@@ -156,6 +157,7 @@ def run_demo(
         "ef_max_abs_error_mm": check.max_abs_error_mm,
         "ef_mean_rel_error": check.mean_rel_error,
         "o_spread_mm": check.o_spread_mm,
+        "scan_mode": scan_options.mode,
         "cloud_points": scan.n_points,
         "scan_seconds": scan.seconds,
     }

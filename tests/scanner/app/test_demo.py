@@ -5,6 +5,7 @@ import json
 import pytest
 
 from scanner.app.cli import main
+from scanner.scanning.pipeline import ScanOptions
 
 pytestmark = pytest.mark.slow
 
@@ -26,6 +27,7 @@ def test_demo_runs_every_stage_and_links_the_reports(tmp_path, capsys):
     assert errors["plane_angle_deg"] < 0.01
     assert errors["hand_eye_translation_mm"] < 0.5
     assert figures["cloud_points"] > 10_000
+    assert figures["scan_mode"] == ScanOptions().mode  # as `scanner scan` runs by default
     # 80 frames thin the cell's sweep: the spheres and the plate are still in the cloud.
     assert figures["measure_passed"] and figures["acceptance_passed"]
     assert figures["calibration_rms_px"] is not None  # was always null (a key that never existed)
