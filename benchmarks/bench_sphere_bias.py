@@ -33,7 +33,8 @@ Three tables per case:
 The second form takes the second table over every randomised seed a coverage run of
 ``bench_uncertainty.py --randomised`` rendered (fast mode only): which points to keep, judged
 over the randomised domain instead of one sensor, with one more row: each cap trimmed to the
-part seen on both sides of its axis (:func:`symmetric_cap_errors`).
+part seen on both sides of its axis (:func:`symmetric_cap_errors`), and the third table
+averaged over the seeds.
 
 The sweeps are rendered once into ``--work`` (about 4 min each with two processes on this
 machine's two cores); the clouds are kept too, so after a change to the scan pass
@@ -205,9 +206,13 @@ def run_coverage_seeds(cache: Path, work: Path, rescan: bool) -> None:
     if not sims:
         raise SystemExit(f"{cache}: no randomised-*/result.json (not a coverage cache)")
     errors: dict[str, list[list[float]]] = {}
+    bands: dict[tuple[str, str], list[tuple[int, float]]] = {}
     for sim in sims:
         truth = read_truth(sim / "truth.json")
         points, flags = _cloud(sim, truth, "fast", rescan, out=work / sim.parent.name)
+        for sphere, rows in elevation_errors(points[(flags & ~GRAZING) == 0], truth).items():
+            for band, count, mean in rows:
+                bands.setdefault((sphere, band), []).append((count, mean))
         for label, keep in selections(flags).items():
             f = sphere_figures(points[keep], truth)
             row = [f["sphere_1 diameter error"], f["sphere_2 diameter error"]]
@@ -218,10 +223,14 @@ def run_coverage_seeds(cache: Path, work: Path, rescan: bool) -> None:
         print(f"{sim.parent.name} | {SYMMETRIC_CAP} | {row[0]:+.4f} | {row[1]:+.4f}", flush=True)
     print(f"\n### Randomised seeds of {cache} ({len(sims)}), fast mode, true calibration\n")
     print(
-        "Sphere diameter error over the seeds (mm): mean / RMS / largest absolute; and in how "
-        "many seeds the error is smaller than the default cloud's\n"
+        "Sphere diameter error over the seeds (mm): mean / RMS / largest absolute; in how many "
+        "seeds the error is smaller than the default cloud's; the mean paired change of the "
+        "squared error against the default, with its standard error (um²)\n"
     )
-    print("| points kept | sphere_1 | sphere_2 | smaller than default |\n|---|---:|---:|---:|")
+    print(
+        "| points kept | sphere_1 | sphere_2 | smaller than default | change of error² |\n"
+        "|---|---:|---:|---:|---:|"
+    )
     default = np.abs(np.asarray(next(iter(errors.values()))))
     for label, rows in errors.items():
         e = np.asarray(rows)
@@ -231,7 +240,25 @@ def run_coverage_seeds(cache: Path, work: Path, rescan: bool) -> None:
             for j in range(2)
         ]
         closer = " / ".join(f"{int(np.sum(np.abs(e[:, j]) < default[:, j]))}" for j in range(2))
-        print(f"| {label} | {cells[0]} | {cells[1]} | {closer} |")
+        change = (e**2 - default**2) * 1e6
+        se = change.std(axis=0, ddof=1) / np.sqrt(len(change)) if len(change) > 1 else [np.nan] * 2
+        paired = " / ".join(f"{change[:, j].mean():+.0f} +- {se[j]:.0f}" for j in range(2))
+        print(f"| {label} | {cells[0]} | {cells[1]} | {closer} | {paired} |")
+    print(
+        "\nThe default cloud (flags 0): radial error against the true sphere (mm) by elevation "
+        "above its equator, over the seeds (mean weighted by points; points per seed)\n"
+    )
+    names = list(dict.fromkeys(b for _, b in bands))
+    print("| sphere | " + " | ".join(f"{b} deg" for b in names) + " |")
+    print("|---|" + "---:|" * len(names))
+    for sphere in dict.fromkeys(sp for sp, _ in bands):
+        cells = []
+        for b in names:
+            v = np.asarray(bands[(sphere, b)], dtype=np.float64)
+            seen = v[:, 0] > 0
+            mean = np.average(v[seen, 1], weights=v[seen, 0]) if seen.any() else np.nan
+            cells.append(f"{mean:+.4f} ({v[:, 0].mean():.0f})" if seen.any() else "-")
+        print(f"| {sphere} | " + " | ".join(cells) + " |")
 
 
 def run_case(name: str, cell: CellConfig, work: Path, rescan: bool) -> None:
