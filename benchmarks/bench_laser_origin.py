@@ -107,31 +107,43 @@ def cloud_sphere_figures(cloud_path: Path, truth: CellTruth) -> dict[str, float]
     return sphere_figures(cloud_arrays(read_cloud(cloud_path))["positions"], truth)
 
 
-def sphere_figures(points: np.ndarray, truth: CellTruth) -> dict[str, float]:
-    """Each true sphere's points among ``points`` (N, 3), base frame, mm: those within 1.5 mm
-    of it and not within 1.5 mm of the bar, post or table joining it. The least-squares
-    diameter's error, the form range PF (range of radial residuals), the spacing's error; and
-    the points' noise (1.4826 MAD of the residuals) with the range that noise alone gives that
-    many Gaussian points (about 2 sigma sqrt(2 ln N))."""
-    spheres = [o for o in truth.objects if o.type == "sphere"]
+def sphere_points(points: np.ndarray, truth: CellTruth) -> list[tuple[ObjectTruth, np.ndarray]]:
+    """Each true sphere with its points among ``points`` (N, 3), base frame, mm: those within
+    1.5 mm of it and not within 1.5 mm of the bar, post or table joining it ((M, 3) each)."""
     apart = apart_from_others(points, truth)
+    return [
+        (obj, points[(surface_distance(points, obj) < 1.5) & apart])
+        for obj in truth.objects
+        if obj.type == "sphere"
+    ]
+
+
+def fit_sphere(points: np.ndarray, start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares sphere of ``points`` (N, 3) from ``start`` (centre x, y, z, radius, mm):
+    the fitted (4,) and the radial residuals (N,)."""
+    fit = least_squares(lambda x: np.linalg.norm(points - x[:3], axis=1) - x[3], start)
+    return fit.x, fit.fun
+
+
+def sphere_figures(points: np.ndarray, truth: CellTruth) -> dict[str, float]:
+    """Each true sphere's points among ``points`` (N, 3), base frame, mm, as
+    :func:`sphere_points` takes them: the least-squares diameter's error, the form range PF
+    (range of radial residuals), the spacing's error; and the points' noise (1.4826 MAD of the
+    residuals) with the range that noise alone gives that many Gaussian points (about
+    2 sigma sqrt(2 ln N))."""
     out: dict[str, float] = {}
     centres = []
-    for k, obj in enumerate(spheres, start=1):
+    for k, (obj, near) in enumerate(sphere_points(points, truth), start=1):
         c0 = np.asarray(obj.params["center_mm"], dtype=np.float64)
         r0 = 0.5 * float(obj.params["diameter_mm"])
-        near = points[(surface_distance(points, obj) < 1.5) & apart]
-        fit = least_squares(
-            lambda x, p=near: np.linalg.norm(p - x[:3], axis=1) - x[3], np.append(c0, r0)
-        )
-        res = fit.fun
+        x, res = fit_sphere(near, np.append(c0, r0))
         sigma = 1.4826 * float(np.median(np.abs(res - np.median(res))))
-        out[f"sphere_{k} diameter error"] = 2 * (fit.x[3] - r0)
+        out[f"sphere_{k} diameter error"] = 2 * (x[3] - r0)
         out[f"sphere_{k} PF"] = float(res.max() - res.min())
         out[f"sphere_{k} noise sigma"] = sigma
         out[f"sphere_{k} PF of that noise alone"] = 2 * sigma * np.sqrt(2 * np.log(len(near)))
         out[f"sphere_{k} points"] = len(near)
-        centres.append((fit.x[:3], c0))
+        centres.append((x[:3], c0))
     if len(centres) == 2:
         (a, ta), (b, tb) = centres
         out["spacing error"] = float(np.linalg.norm(a - b) - np.linalg.norm(ta - tb))

@@ -48,9 +48,8 @@ import dataclasses
 from pathlib import Path
 
 import numpy as np
-from bench_laser_origin import apart_from_others, sphere_figures, surface_distance
+from bench_laser_origin import fit_sphere, sphere_figures, sphere_points
 from bench_stretch_ends import sweep_centre_errors
-from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
 from scanner.app import stages
@@ -109,23 +108,18 @@ def image_errors(sim: Path, mode: str) -> dict[tuple[str, str], np.ndarray]:
 def elevation_errors(
     points: np.ndarray, truth: CellTruth
 ) -> dict[str, list[tuple[str, int, float]]]:
-    """Per sphere: (band, count, mean radial error mm) by elevation above its equator, of the
-    points within 1.5 mm of it and not within 1.5 mm of anything else (as
-    :func:`bench_laser_origin.sphere_figures` takes them)."""
+    """Per sphere: (band, count, mean radial error mm) by elevation above its equator, of its
+    points as :func:`bench_laser_origin.sphere_points` takes them; a band without points has
+    a NaN mean."""
     bands = [(-91, 0), (0, 20), (20, 35), (35, 50), (50, 65), (65, 91)]
-    points = points[apart_from_others(points, truth)]
     out: dict[str, list[tuple[str, int, float]]] = {}
-    for obj in truth.objects:
-        if obj.type != "sphere":
-            continue
-        c0 = np.asarray(obj.params["center_mm"], dtype=np.float64)
-        q = points - c0
+    for obj, near in sphere_points(points, truth):
+        q = near - np.asarray(obj.params["center_mm"], dtype=np.float64)
         r = np.linalg.norm(q, axis=1)
         radial = r - 0.5 * float(obj.params["diameter_mm"])
-        near = np.abs(radial) < 1.5
-        elev = np.degrees(np.arcsin(np.clip(q[near, 2] / r[near], -1.0, 1.0)))
+        elev = np.degrees(np.arcsin(np.clip(q[:, 2] / r, -1.0, 1.0)))
         out[obj.id] = [
-            (f"{a}-{b}", int(m.sum()), float(radial[near][m].mean()) if m.any() else np.nan)
+            (f"{a}-{b}", int(m.sum()), float(radial[m].mean()) if m.any() else np.nan)
             for a, b in bands
             for m in [(elev >= a) & (elev < b)]
         ]
@@ -151,10 +145,14 @@ def _cloud(
     return arrays["positions"], arrays["flags"].ravel().astype(int)
 
 
+#: The points the default cloud holds: no flag but the incidence limit these clouds add.
+DEFAULT = "flags 0 (the default cloud)"
+
+
 def selections(flags: np.ndarray) -> dict[str, np.ndarray]:
-    """The points each selection keeps, by its label: (N,) bool."""
+    """The points each selection keeps, by its label, the default first: (N,) bool."""
     return {
-        "flags 0 (the default cloud)": (flags & ~GRAZING) == 0,
+        DEFAULT: (flags & ~GRAZING) == 0,
         "flags 0 or saturated": (flags & ~(GRAZING | SAT)) == 0,
         f"flags 0, incidence <= {INCIDENCE_DEG:g} deg": flags == 0,
         f"flags 0 or saturated, incidence <= {INCIDENCE_DEG:g} deg": (flags & ~SAT) == 0,
@@ -169,32 +167,24 @@ def symmetric_cap_errors(
 ) -> list[float]:
     """Each true sphere's diameter error (mm) from its cap trimmed to be seen on both sides.
 
-    The points as :func:`bench_laser_origin.sphere_figures` takes them are fitted (least
+    The points as :func:`bench_laser_origin.sphere_points` takes them are fitted (least
     squares); a point stays if its direction from the fitted centre, turned half a turn about
     the cap's axis (the points' mean direction), lies within ``within_deg`` of another point's
     direction; the kept points are fitted again. A lopsided cap (one side hidden by the bar)
     becomes a symmetric one: does that remove sphere_2's size error?
     """
-    apart = apart_from_others(points, truth)
     out = []
-    for obj in (o for o in truth.objects if o.type == "sphere"):
-        c0 = np.asarray(obj.params["center_mm"], dtype=np.float64)
+    for obj, near in sphere_points(points, truth):
         r0 = 0.5 * float(obj.params["diameter_mm"])
-        near = points[(surface_distance(points, obj) < 1.5) & apart]
-        x = _sphere_fit(near, np.append(c0, r0))
+        x, _ = fit_sphere(near, np.append(np.asarray(obj.params["center_mm"], float), r0))
         u = near - x[:3]
         u /= np.linalg.norm(u, axis=1)[:, None]
         axis = u.mean(axis=0) / np.linalg.norm(u.mean(axis=0))
         turned = 2.0 * (u @ axis)[:, None] * axis - u
         seen, _ = cKDTree(u).query(turned)
-        x = _sphere_fit(near[seen < np.radians(within_deg)], x)
+        x, _ = fit_sphere(near[seen < np.radians(within_deg)], x)
         out.append(2.0 * (x[3] - r0))
     return out
-
-
-def _sphere_fit(points: np.ndarray, start: np.ndarray) -> np.ndarray:
-    """Least-squares sphere (centre x, y, z, radius) of ``points`` (N, 3) from ``start``."""
-    return least_squares(lambda x: np.linalg.norm(points - x[:3], axis=1) - x[3], start).x
 
 
 def run_coverage_seeds(cache: Path, work: Path, rescan: bool) -> None:
@@ -210,15 +200,17 @@ def run_coverage_seeds(cache: Path, work: Path, rescan: bool) -> None:
     for sim in sims:
         truth = read_truth(sim / "truth.json")
         points, flags = _cloud(sim, truth, "fast", rescan, out=work / sim.parent.name)
-        for sphere, rows in elevation_errors(points[(flags & ~GRAZING) == 0], truth).items():
+        kept = selections(flags)
+        default = points[kept[DEFAULT]]
+        for sphere, rows in elevation_errors(default, truth).items():
             for band, count, mean in rows:
                 bands.setdefault((sphere, band), []).append((count, mean))
-        for label, keep in selections(flags).items():
+        for label, keep in kept.items():
             f = sphere_figures(points[keep], truth)
             row = [f["sphere_1 diameter error"], f["sphere_2 diameter error"]]
             errors.setdefault(label, []).append(row)
             print(f"{sim.parent.name} | {label} | {row[0]:+.4f} | {row[1]:+.4f}", flush=True)
-        row = symmetric_cap_errors(points[(flags & ~GRAZING) == 0], truth)
+        row = symmetric_cap_errors(default, truth)
         errors.setdefault(SYMMETRIC_CAP, []).append(row)
         print(f"{sim.parent.name} | {SYMMETRIC_CAP} | {row[0]:+.4f} | {row[1]:+.4f}", flush=True)
     print(f"\n### Randomised seeds of {cache} ({len(sims)}), fast mode, true calibration\n")
@@ -231,7 +223,7 @@ def run_coverage_seeds(cache: Path, work: Path, rescan: bool) -> None:
         "| points kept | sphere_1 | sphere_2 | smaller than default | change of error² |\n"
         "|---|---:|---:|---:|---:|"
     )
-    default = np.abs(np.asarray(next(iter(errors.values()))))
+    base = np.abs(np.asarray(errors[DEFAULT]))
     for label, rows in errors.items():
         e = np.asarray(rows)
         cells = [
@@ -239,14 +231,15 @@ def run_coverage_seeds(cache: Path, work: Path, rescan: bool) -> None:
             f"{np.abs(e[:, j]).max():.4f}"
             for j in range(2)
         ]
-        closer = " / ".join(f"{int(np.sum(np.abs(e[:, j]) < default[:, j]))}" for j in range(2))
-        change = (e**2 - default**2) * 1e6
+        closer = " / ".join(f"{int(np.sum(np.abs(e[:, j]) < base[:, j]))}" for j in range(2))
+        change = (e**2 - base**2) * 1e6
         se = change.std(axis=0, ddof=1) / np.sqrt(len(change)) if len(change) > 1 else [np.nan] * 2
         paired = " / ".join(f"{change[:, j].mean():+.0f} +- {se[j]:.0f}" for j in range(2))
         print(f"| {label} | {cells[0]} | {cells[1]} | {closer} | {paired} |")
     print(
         "\nThe default cloud (flags 0): radial error against the true sphere (mm) by elevation "
-        "above its equator, over the seeds (mean weighted by points; points per seed)\n"
+        "above its equator, over the seeds (mean weighted by points; points per seed; '-' where "
+        "a band has less than one point per seed)\n"
     )
     names = list(dict.fromkeys(b for _, b in bands))
     print("| sphere | " + " | ".join(f"{b} deg" for b in names) + " |")
@@ -255,9 +248,12 @@ def run_coverage_seeds(cache: Path, work: Path, rescan: bool) -> None:
         cells = []
         for b in names:
             v = np.asarray(bands[(sphere, b)], dtype=np.float64)
+            if v[:, 0].mean() < 1.0:
+                cells.append("-")
+                continue
             seen = v[:, 0] > 0
-            mean = np.average(v[seen, 1], weights=v[seen, 0]) if seen.any() else np.nan
-            cells.append(f"{mean:+.4f} ({v[:, 0].mean():.0f})" if seen.any() else "-")
+            mean = np.average(v[seen, 1], weights=v[seen, 0])
+            cells.append(f"{mean:+.4f} ({v[:, 0].mean():.0f})")
         print(f"| {sphere} | " + " | ".join(cells) + " |")
 
 
@@ -289,7 +285,7 @@ def run_case(name: str, cell: CellConfig, work: Path, rescan: bool) -> None:
                 f"({f['sphere_2 points']:.0f}) | {f['spacing error']:+.4f} |"
             )
     points, flags = _cloud(sim, truth, "fast", rescan=False)
-    by_band = elevation_errors(points[(flags & ~GRAZING) == 0], truth)
+    by_band = elevation_errors(points[selections(flags)[DEFAULT]], truth)
     print("\nThe default cloud (fast, flags 0): mean radial error (mm) by elevation, points\n")
     bands = [b for b, _, _ in next(iter(by_band.values()))]
     print("| sphere | " + " | ".join(f"{b} deg" for b in bands) + " |")
