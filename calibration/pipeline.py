@@ -20,7 +20,7 @@ import csv
 import logging
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -585,6 +585,9 @@ def calibrate_session(
             "d": plane_paper.plane.d,  # type: ignore[union-attr]
             "rms_mm": plane_paper.rms_mm,
         }
+    written_origin = origin if origin is not None and origin.std_mm <= MAX_ORIGIN_STD_MM else None
+    if covariance is not None and written_origin is not None:
+        covariance = replace(covariance, laser_origin_mm2=written_origin.covariance_mm2)
     calib = Calibration(
         width=session.width,
         height=session.height,
@@ -592,9 +595,7 @@ def calibrate_session(
         dist=camera.dist,
         light_plane=None if plane_res is None else plane_res.plane,
         flange_from_cam=he.flange_from_cam,  # type: ignore[arg-type]
-        laser_origin_cam=(
-            origin.origin_cam if origin is not None and origin.std_mm <= MAX_ORIGIN_STD_MM else None
-        ),
+        laser_origin_cam=None if written_origin is None else written_origin.origin_cam,
         quality=quality,
         covariance=covariance,
     )

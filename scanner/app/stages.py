@@ -382,16 +382,17 @@ def calibrate(
     )
     if laser_origin_cam_mm is not None:
         origin = np.asarray(laser_origin_cam_mm, dtype=np.float64)
-        plane = calibration.light_plane
-        if plane is None:
+        if calibration.light_plane is None:
             raise ValueError("--laser-origin-mm: the session gave no light plane to put it on")
-        off = abs(float(plane.normal @ origin + plane.d))
+        off = abs(float(calibration.light_plane.signed_distance(origin)))
         if off <= 5.0:
             record["laser_origin_source"] = "given (--laser-origin-mm, the sensor's drawing)"
+            cov = calibration.covariance  # the estimate's origin covariance is not the drawing's
             calibration = replace(
                 calibration,
                 laser_origin_cam=origin,
                 quality=replace(calibration.quality, record=record),
+                covariance=cov if cov is None else replace(cov, laser_origin_mm2=None),
             )
         elif laser_origin_strict:
             raise ValueError(

@@ -14,11 +14,17 @@ in this order (:data:`PARAMETERS`)::
     cam_tx, cam_ty, cam_tz    mm:  flange_from_cam @ [I, t] (both in the camera frame)
 
 and the robot's repeatability, one sigma per axis of the flange's rotation (deg) and
-translation (mm), for the stops of a scan. In the file::
+translation (mm), for the stops of a scan; where the calibration estimated the laser origin
+(``laser_origin_cam``), that point's own covariance (mm², camera frame; rank 2, within the
+light plane). In the file::
 
     "covariance": {"parameters": ["fx", ...], "matrix": [[...], ...],
                    "robot": {"rotation_deg": 0.002, "translation_mm": 0.01},
+                   "laser_origin_mm2": [[...3 x 3...]],      # optional
                    "method": "..."}
+
+The laser origin moves no point of a scan: it decides only which points the incidence limit
+flags, so it has no share in a measured value's uncertainty.
 
 A parameter the calibration held fixed has zero variance. :func:`apply_correction` gives the
 calibration a correction describes, so that a reader can carry the uncertainty into whatever
@@ -129,12 +135,16 @@ class CalibrationCovariance:
         The robot's repeatability at a stop: one sigma per axis.
     method : str
         How the covariance was estimated, in words.
+    laser_origin_mm2 : ndarray, shape (3, 3), or None
+        The estimated laser origin's covariance, camera frame, mm²; ``None`` where the file
+        has no estimated origin (none, or one given from the sensor's drawing).
     """
 
     matrix: NDArray
     robot_rotation_deg: float = 0.0
     robot_translation_mm: float = 0.0
     method: str = ""
+    laser_origin_mm2: NDArray | None = None
 
     def __post_init__(self) -> None:
         m = np.asarray(self.matrix, dtype=np.float64)
@@ -150,6 +160,18 @@ class CalibrationCovariance:
             if not (np.isfinite(v) and v >= 0):
                 raise ValueError(f"covariance.robot.{name}: expected a finite value >= 0, got {v}")
             object.__setattr__(self, name, v)
+        if self.laser_origin_mm2 is not None:
+            o = np.asarray(self.laser_origin_mm2, dtype=np.float64)
+            if o.shape != (3, 3) or not np.all(np.isfinite(o)):
+                raise ValueError(
+                    f"covariance.laser_origin_mm2: expected a finite 3x3 matrix, got {o.shape}"
+                )
+            o = 0.5 * (o + o.T)
+            if np.linalg.eigvalsh(o).min() < -1e-9 * max(1e-30, float(np.abs(o).max())):
+                raise ValueError(
+                    "covariance.laser_origin_mm2: expected a positive semi-definite matrix"
+                )
+            object.__setattr__(self, "laser_origin_mm2", o)
 
     @property
     def std(self) -> dict[str, float]:
@@ -180,6 +202,7 @@ class CalibrationCovariance:
         return rng.standard_normal((n, len(dirs))) @ dirs
 
     def to_json(self) -> dict[str, Any]:
+        origin = self.laser_origin_mm2
         return {
             "parameters": list(PARAMETERS),
             "matrix": self.matrix.tolist(),
@@ -187,6 +210,7 @@ class CalibrationCovariance:
                 "rotation_deg": self.robot_rotation_deg,
                 "translation_mm": self.robot_translation_mm,
             },
+            **({} if origin is None else {"laser_origin_mm2": origin.tolist()}),
             "method": self.method,
         }
 
@@ -206,4 +230,9 @@ class CalibrationCovariance:
             robot_rotation_deg=float(robot.get("rotation_deg", 0.0)),
             robot_translation_mm=float(robot.get("translation_mm", 0.0)),
             method=str(record.get("method", "")),
+            laser_origin_mm2=(
+                None
+                if record.get("laser_origin_mm2") is None
+                else np.asarray(record["laser_origin_mm2"], dtype=np.float64)
+            ),
         )

@@ -133,6 +133,12 @@ def test_laser_origin_from_the_drawing_is_written_when_it_lies_on_the_plane(
     # The drawing's value replaces the estimate from the shadow edges, and the file says so.
     assert written.quality.record["laser_origin_source"].startswith("given")
     assert written.quality.record["laser_origin"]["estimated"]
+    # ... and the estimate's covariance (which it would have written) is not carried for the
+    # drawing's point (issue #19)
+    assert (
+        written.quality.record["laser_origin"]["std_mm"] <= calibration_pipeline.MAX_ORIGIN_STD_MM
+    )
+    assert written.covariance is not None and written.covariance.laser_origin_mm2 is None
     # The same calibration again, with an origin 40 mm off the plane: refused.
     monkeypatch.setattr(stages, "calibrate_session", lambda *args, **kwargs: run.result)
     off = tmp_path / "off.json"

@@ -76,7 +76,23 @@ def test_the_file_carries_the_covariance(tmp_path):
     back = read_calibration(path)
     np.testing.assert_allclose(back.covariance.matrix, cal.covariance.matrix)
     assert back.covariance.robot_translation_mm == 0.02
-    assert json.loads(path.read_text())["covariance"]["parameters"] == list(PARAMETERS)
+    assert back.covariance.laser_origin_mm2 is None
+    record = json.loads(path.read_text())["covariance"]
+    assert record["parameters"] == list(PARAMETERS) and "laser_origin_mm2" not in record
+
+
+def test_the_file_carries_the_laser_origins_covariance(tmp_path):
+    # issue #19: the origin's covariance (rank 2, within the light plane) goes with the rest
+    rng = np.random.default_rng(4)
+    basis = np.linalg.qr(rng.standard_normal((3, 2)))[0]
+    origin = basis @ np.diag([0.4, 0.1]) @ basis.T
+    cal = _calibration()
+    cal.covariance = CalibrationCovariance(_random_covariance(rng), laser_origin_mm2=origin)
+    path = tmp_path / "cal.json"
+    write_calibration(path, cal)
+    back = read_calibration(path).covariance
+    np.testing.assert_allclose(back.laser_origin_mm2, origin, atol=1e-15)
+    np.testing.assert_allclose(back.matrix, cal.covariance.matrix)
 
 
 @pytest.mark.parametrize(
@@ -86,6 +102,8 @@ def test_the_file_carries_the_covariance(tmp_path):
         (lambda r: r.update(matrix=[[1.0]]), "expected a finite 18x18"),
         (lambda r: r.update(matrix=(-np.eye(18)).tolist()), "positive semi-definite"),
         (lambda r: r.update(robot={"rotation_deg": -1}), "expected a finite value >= 0"),
+        (lambda r: r.update(laser_origin_mm2=[[1.0, 0.0]]), "laser_origin_mm2: expected a finite"),
+        (lambda r: r.update(laser_origin_mm2=(-np.eye(3)).tolist()), "positive semi-definite"),
     ],
 )
 def test_a_covariance_it_cannot_use_is_ignored_with_a_warning(tmp_path, caplog, change, message):
