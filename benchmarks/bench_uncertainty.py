@@ -3,6 +3,7 @@
     python benchmarks/bench_uncertainty.py --seeds 30                  # modern cell
     python benchmarks/bench_uncertainty.py --seeds 30 --randomised     # another sensor per seed
     python benchmarks/bench_uncertainty.py --report                    # the tables, from cache
+    python benchmarks/bench_uncertainty.py --acceptance --seeds 3      # the modern sensor's PS, SD
 
 Each seed is an independent job on the virtual cell: a new calibration session, its
 calibration (with the covariance the file now carries), a new sweep of the same scene, the
@@ -26,6 +27,10 @@ against the part of the error the drawn misses made (:func:`robot_parts`), and w
 propagation costs in ``scanner measure``'s time. Last, the robot's repeatability each calibration stated against
 the misses the simulator drew (:func:`repeatability_against_truth`). Every seed's result is
 cached under ``--work`` (resumable).
+
+``--acceptance`` checks the modern plan's own ``instrument`` figures instead: at each seed a new
+calibration session of the modern cell, its calibration, and the same full test a randomised
+sensor gets (:func:`modern_acceptance`).
 """
 
 from __future__ import annotations
@@ -111,6 +116,20 @@ def sensor_acceptance(cell: CellConfig, seed: int, folder: Path) -> dict:
     figures |= design | {"sweeps": sweeps}
     cached.write_text(json.dumps(figures, indent=1))
     return figures
+
+
+def modern_acceptance(seed: int, work: Path) -> dict:
+    """The modern sensor's full test (:func:`sensor_acceptance`) with the calibration of a new
+    calibration session at ``seed``: what the modern plan's ``instrument`` figures stand for.
+    Cached under ``work/acceptance-modern-SEED``."""
+    folder = work / f"acceptance-modern-{seed:03d}"
+    folder.mkdir(parents=True, exist_ok=True)
+    cell = load_cell("modern")
+    if not (folder / "cal.json").is_file():
+        stages.simulate(cell, folder / "sim", seed=seed, sessions=("calibration",), workers=2)
+        stages.calibrate(folder / "sim" / "calibration", folder / "cal.json", report=None)
+        shutil.rmtree(folder / "sim", ignore_errors=True)
+    return sensor_acceptance(cell, seed, folder)
 
 
 def repeatability_against_truth(folder: Path) -> dict[str, float] | None:
@@ -446,7 +465,21 @@ def main(argv: list[str] | None = None) -> int:
         help="measure the cached clouds again (no simulation of the job; acceptance figures "
         "of an older design are measured again)",
     )
+    parser.add_argument(
+        "--acceptance",
+        action="store_true",
+        help="only the modern sensor's full test at each seed, against the plan's instrument line",
+    )
     args = parser.parse_args(argv)
+    if args.acceptance:
+        plan = load_plan(resolve_config(PLAN, "plans"))
+        print(f"{PLAN}: instrument {plan.instrument}\n")
+        print("| seed | PS, mm | SD, mm | each sweep's PS / SD, mm |\n|---|---:|---:|---|")
+        for seed in range(args.first_seed, args.first_seed + args.seeds):
+            f = modern_acceptance(seed, args.work)
+            each = ", ".join(f"{w['PS']:+.4f} / {w['SD']:+.4f}" for w in f["sweeps"])
+            print(f"| {seed} | {f['PS']:+.4f} | {f['SD']:+.4f} | {each} |", flush=True)
+        return 0
     kind = "randomised" if args.randomised else "modern"
     results = []
     if args.report:
