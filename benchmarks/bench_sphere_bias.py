@@ -10,7 +10,10 @@ apart, case by case:
 * ``clean, no bar``: the same without the bar and post joining the spheres;
 * ``clean, long sweep``: the same with 380 frames instead of 300 (sphere_2 lies at the
   sweep's end);
-* ``randomised 0``: randomised sensor 0 as :mod:`bench_stretch_ends` draws it.
+* ``randomised 0``: randomised sensor 0 as :mod:`bench_stretch_ends` draws it;
+* ``clean, sigma 0.1`` and ``clean, sigma 0.4``: the clean case with the laser line half and
+  twice as wide (sigma 0.2 mm): an error of the stripe's width on a curved surface grows
+  with it, one of what each sphere's view leaves uncancelled does not.
 
 Three tables per case:
 
@@ -24,10 +27,13 @@ Three tables per case:
    points the default cloud holds (flags 0), for those and the saturated ones, each without and
    with the 65 deg incidence limit;
 3. the default cloud's (fast mode, flags 0) radial error against each true sphere, by the
-   point's elevation above the sphere's equator.
+   point's elevation above the sphere's equator;
+4. the same by elevation and azimuth about the vertical (:func:`view_map`, the saturated
+   points included): which part of each sphere the sweep sees, and how each part errs.
 
     python benchmarks/bench_sphere_bias.py [--work /tmp/bench_sphere_bias]
-        [--cases modern clean clean-no-bar clean-long-sweep randomised-0] [--rescan]
+        [--cases modern clean clean-no-bar clean-long-sweep randomised-0 clean-sigma-0.1
+                 clean-sigma-0.4] [--rescan]
     python benchmarks/bench_sphere_bias.py --coverage-cache /work/unc_cache [--work ...] [--rescan]
 
 The second form takes the second table over every randomised seed a coverage run of
@@ -45,6 +51,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import itertools
 from pathlib import Path
 
 import numpy as np
@@ -90,6 +97,12 @@ def cases() -> dict[str, CellConfig]:
             clean, sweep=dataclasses.replace(clean.sweep, frames=380)
         ),
         "randomised-0": randomised_cell(modern, np.random.default_rng(10_000)),
+        **{
+            f"clean-sigma-{sigma:g}": dataclasses.replace(
+                clean, laser=dataclasses.replace(clean.laser, sigma_mm=sigma)
+            )
+            for sigma in (0.1, 0.4)
+        },
     }
 
 
@@ -124,6 +137,45 @@ def elevation_errors(
             for m in [(elev >= a) & (elev < b)]
         ]
     return out
+
+
+def view_map(points: np.ndarray, truth: CellTruth) -> str:
+    """Per sphere, a Markdown table of the mean radial error against the true sphere (mm, with
+    the points' count) by elevation above its equator and azimuth about the vertical, azimuth 0
+    toward the other sphere (cells with fewer than 5 points: '-'); and the least-squares
+    diameter's error with the fitted centre's shift. ``points`` (N, 3), base frame, mm."""
+    spheres = sphere_points(points, truth)
+    centres = [np.asarray(o.params["center_mm"], dtype=np.float64) for o, _ in spheres]
+    azimuths = np.arange(-180, 181, 45)
+    elevations = [0, 20, 35, 50, 65, 91]
+    out = []
+    for k, (obj, near) in enumerate(spheres):
+        c0, r0 = centres[k], 0.5 * float(obj.params["diameter_mm"])
+        q = near - c0
+        r = np.linalg.norm(q, axis=1)
+        radial = r - r0
+        toward = centres[1 - k] - c0 if len(centres) == 2 else np.array([1.0, 0.0, 0.0])
+        toward = toward[:2] / np.linalg.norm(toward[:2])
+        az = np.degrees(np.arctan2(q[:, 1] * toward[0] - q[:, 0] * toward[1], q[:, :2] @ toward))
+        el = np.degrees(np.arcsin(np.clip(q[:, 2] / r, -1.0, 1.0)))
+        x, _ = fit_sphere(near, np.append(c0, r0))
+        out.append(
+            f"\n{obj.id}: diameter error {2 * (x[3] - r0):+.4f} mm, fitted centre moved "
+            f"{np.array2string(x[:3] - c0, precision=4)} mm, {len(near)} points\n"
+        )
+        out.append(
+            "| elevation \\ azimuth, deg | "
+            + " | ".join(f"{a}..{b}" for a, b in itertools.pairwise(azimuths))
+            + " |"
+        )
+        out.append("|---|" + "---:|" * (len(azimuths) - 1))
+        for lo, hi in itertools.pairwise(elevations):
+            cells = []
+            for a, b in itertools.pairwise(azimuths):
+                m = (az >= a) & (az < b + (b == 180)) & (el >= lo) & (el < hi)
+                cells.append(f"{radial[m].mean():+.3f} ({m.sum()})" if m.sum() >= 5 else "-")
+            out.append(f"| {lo}-{hi} | " + " | ".join(cells) + " |")
+    return "\n".join(out)
 
 
 def _cloud(
@@ -293,6 +345,9 @@ def run_case(name: str, cell: CellConfig, work: Path, rescan: bool) -> None:
     for sphere, rows in by_band.items():
         cells = [f"{m:+.4f} ({n})" if n else "-" for _, n, m in rows]
         print(f"| {sphere} | " + " | ".join(cells) + " |")
+    keep = selections(flags)["flags 0 or saturated"]
+    print("\nThe same by elevation and azimuth (fast, flags 0 or saturated), mm (points)")
+    print(view_map(points[keep], truth))
 
 
 def main() -> None:
