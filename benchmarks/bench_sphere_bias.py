@@ -15,7 +15,7 @@ apart, case by case:
   twice as wide (sigma 0.2 mm): an error of the stripe's width on a curved surface grows
   with it, one of what each sphere's view leaves uncancelled does not.
 
-Three tables per case:
+Four tables per case:
 
 1. in the image, each extracted centre's error along its scan line against the rendered
    stripe, per surface, for the points with no flag and for the saturated ones, both modes:
@@ -142,7 +142,8 @@ def elevation_errors(
 def view_map(points: np.ndarray, truth: CellTruth) -> str:
     """Per sphere, a Markdown table of the mean radial error against the true sphere (mm, with
     the points' count) by elevation above its equator and azimuth about the vertical, azimuth 0
-    toward the other sphere (cells with fewer than 5 points: '-'); and the least-squares
+    toward the other sphere (cells with fewer than 5 points: '-'; points below the equator,
+    which these sweeps barely see, are left out of the table, not of the fit); and the least-squares
     diameter's error with the fitted centre's shift. ``points`` (N, 3), base frame, mm."""
     spheres = sphere_points(points, truth)
     centres = [np.asarray(o.params["center_mm"], dtype=np.float64) for o, _ in spheres]

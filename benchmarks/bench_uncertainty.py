@@ -80,7 +80,7 @@ ACCEPTANCE_FRAMES: int | None = None
 
 
 def sensor_acceptance(cell: CellConfig, seed: int, folder: Path) -> dict:
-    """The randomised sensor's own PS and SD (mm): its acceptance test on independent sweeps.
+    """A sensor's own PS and SD (mm): its acceptance test on independent sweeps.
 
     As a user verifies a sensor after calibrating it: ``ACCEPTANCE_SWEEPS`` sweeps (each of
     ``ACCEPTANCE_FRAMES`` frames, rendered with other seeds than the job's, so their noise and
@@ -471,6 +471,11 @@ def main(argv: list[str] | None = None) -> int:
         help="only the modern sensor's full test at each seed, against the plan's instrument line",
     )
     args = parser.parse_args(argv)
+    if args.acceptance and (args.randomised or args.report or args.again):
+        parser.error(
+            "--acceptance: the modern sensor's test alone, without --randomised, "
+            "--report or --again"
+        )
     if args.acceptance:
         plan = load_plan(resolve_config(PLAN, "plans"))
         print(f"{PLAN}: instrument {plan.instrument}\n")

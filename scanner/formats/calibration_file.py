@@ -21,7 +21,7 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -284,16 +284,30 @@ def write_calibration(path: str | os.PathLike[str], calibration: Calibration) ->
     write_json_atomic(path, calibration.to_json())
 
 
-def _covariance_or_none(path: Path, record: Any) -> CalibrationCovariance | None:
+def _covariance_or_none(path: Path, record: Any, has_origin: bool) -> CalibrationCovariance | None:
     """The optional ``covariance`` key; one this reader cannot use (another tool's, or
-    damaged) is ignored with a warning: the calibration itself stays valid."""
+    damaged) is ignored with a warning: the calibration itself stays valid. Its
+    ``laser_origin_mm2`` is judged apart, since no measured value's budget uses it: one that is
+    damaged, or without a ``laser_origin_cam`` to belong to, is dropped alone."""
     if record is None:
         return None
+    origin_record = record.get("laser_origin_mm2") if isinstance(record, Mapping) else None
+    if origin_record is not None:
+        record = {k: v for k, v in record.items() if k != "laser_origin_mm2"}
     try:
-        return CalibrationCovariance.from_json(record)
+        covariance = CalibrationCovariance.from_json(record)
     except (TypeError, ValueError) as exc:
         log.warning("%s: covariance ignored (%s): measurements get no calibration share", path, exc)
         return None
+    if origin_record is None:
+        return covariance
+    try:
+        if not has_origin:
+            raise ValueError("the file has no laser_origin_cam")
+        return replace(covariance, laser_origin_mm2=np.asarray(origin_record, dtype=np.float64))
+    except (TypeError, ValueError) as exc:
+        log.warning("%s: covariance.laser_origin_mm2 ignored (%s)", path, exc)
+        return covariance
 
 
 def read_calibration(path: str | os.PathLike[str]) -> Calibration:
@@ -312,7 +326,7 @@ def read_calibration(path: str | os.PathLike[str]) -> Calibration:
         cam = obj["camera"]
         plane = obj.get("light_plane")
         origin = obj.get("laser_origin_cam")
-        covariance = _covariance_or_none(p, obj.get("covariance"))
+        covariance = _covariance_or_none(p, obj.get("covariance"), origin is not None)
         return Calibration(
             width=json_int(cam["width"], "camera.width"),
             height=json_int(cam["height"], "camera.height"),

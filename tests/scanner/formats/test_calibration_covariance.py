@@ -81,13 +81,21 @@ def test_the_file_carries_the_covariance(tmp_path):
     assert record["parameters"] == list(PARAMETERS) and "laser_origin_mm2" not in record
 
 
+def _with_origin_covariance(cal, rng: np.random.Generator) -> np.ndarray:
+    """Give ``cal`` a laser origin on its light plane and a covariance with the origin's
+    (rank 2, within the plane); returns the origin's covariance."""
+    e1, e2 = plane_tilt_axes(cal.light_plane.normal)
+    cal.laser_origin_cam = -cal.light_plane.d * cal.light_plane.normal + 50.0 * e1
+    basis = np.column_stack([e1, e2])
+    origin = basis @ np.diag([0.4, 0.1]) @ basis.T
+    cal.covariance = CalibrationCovariance(_random_covariance(rng), laser_origin_mm2=origin)
+    return origin
+
+
 def test_the_file_carries_the_laser_origins_covariance(tmp_path):
     # issue #19: the origin's covariance (rank 2, within the light plane) goes with the rest
-    rng = np.random.default_rng(4)
-    basis = np.linalg.qr(rng.standard_normal((3, 2)))[0]
-    origin = basis @ np.diag([0.4, 0.1]) @ basis.T
     cal = _calibration()
-    cal.covariance = CalibrationCovariance(_random_covariance(rng), laser_origin_mm2=origin)
+    origin = _with_origin_covariance(cal, np.random.default_rng(4))
     path = tmp_path / "cal.json"
     write_calibration(path, cal)
     back = read_calibration(path).covariance
@@ -98,12 +106,33 @@ def test_the_file_carries_the_laser_origins_covariance(tmp_path):
 @pytest.mark.parametrize(
     ("change", "message"),
     [
+        (lambda r: r["covariance"].update(laser_origin_mm2=[[1.0, 0.0]]), "expected a finite 3x3"),
+        (lambda r: r["covariance"].update(laser_origin_mm2=(-np.eye(3)).tolist()), "semi-definite"),
+        (lambda r: r.pop("laser_origin_cam"), "no laser_origin_cam"),
+    ],
+)
+def test_an_origin_covariance_it_cannot_use_is_dropped_alone(tmp_path, caplog, change, message):
+    # the origin's entry has no line in any budget: a bad one must not cost the matrix
+    cal = _calibration()
+    _with_origin_covariance(cal, np.random.default_rng(6))
+    record = cal.to_json()
+    change(record)
+    path = tmp_path / "cal.json"
+    path.write_text(json.dumps(record))
+    back = read_calibration(path).covariance
+    assert back is not None and back.laser_origin_mm2 is None
+    np.testing.assert_allclose(back.matrix, cal.covariance.matrix)
+    assert "laser_origin_mm2 ignored" in caplog.text and message in caplog.text
+    assert str(path) in caplog.text
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
         (lambda r: r.update(parameters=["fx"]), "covariance.parameters"),
         (lambda r: r.update(matrix=[[1.0]]), "expected a finite 18x18"),
         (lambda r: r.update(matrix=(-np.eye(18)).tolist()), "positive semi-definite"),
         (lambda r: r.update(robot={"rotation_deg": -1}), "expected a finite value >= 0"),
-        (lambda r: r.update(laser_origin_mm2=[[1.0, 0.0]]), "laser_origin_mm2: expected a finite"),
-        (lambda r: r.update(laser_origin_mm2=(-np.eye(3)).tolist()), "positive semi-definite"),
     ],
 )
 def test_a_covariance_it_cannot_use_is_ignored_with_a_warning(tmp_path, caplog, change, message):
