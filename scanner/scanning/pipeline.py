@@ -1,6 +1,7 @@
 """Sweep sessions to a stitched cloud on disk: the ``scanner scan`` job.
 
-Frames stream through worker processes in chunks; each chunk's stripe profiles are saved as
+Frames stream through worker threads in chunks (decoding and the stripe kernels release the
+GIL); each chunk's stripe profiles are saved as
 one ``.npz`` under a work folder named after a hash of the sessions, the calibration and the
 extraction options, so an interrupted run resumes where it stopped. The profiles are then
 triangulated in one batch (pixels to base frame), stitched into an Open3D tensor cloud with
@@ -23,12 +24,13 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from scanner.core.fileio import InputError, atomic_output
 from scanner.core.images import load_laser_images
-from scanner.core.parallel import process_pool
+from scanner.core.parallel import thread_pool
 from scanner.formats.calibration_file import Calibration, read_calibration
 from scanner.formats.clouds import _check_format, write_cloud
 from scanner.formats.session import Frame, Session, read_session
@@ -109,7 +111,7 @@ class ScanOptions:
     icp_max_distance_mm, icp_warn_translation_mm, icp_warn_rotation_deg
         ICP correspondence distance and the corrections that trigger a warning.
     workers : int
-        Worker processes for the extraction (1: in this process).
+        Worker threads for the extraction (1: in the calling thread).
     chunk_frames : int
         Frames per saved chunk (the unit of resumption).
     """
@@ -282,12 +284,6 @@ class _ChunkJob:
 
 def _extract_chunk(job: _ChunkJob) -> tuple[int, int, int]:
     """Worker: extract every frame of a chunk and save the profiles. Returns (chunk, points, empty)."""
-    try:
-        import cv2
-
-        cv2.setNumThreads(1)
-    except Exception:  # pragma: no cover - cv2 is a dependency
-        pass
     parts: dict[str, list[NDArray]] = {k: [] for k in (*_PROFILE_KEYS, "frame")}
     empty = 0
     for fj in job.frames:
@@ -311,8 +307,10 @@ def _extract_chunk(job: _ChunkJob) -> tuple[int, int, int]:
 
 
 def _pool(workers: int) -> Executor:
-    """Spawned worker processes (see :mod:`scanner.core.parallel` for why never fork)."""
-    return process_pool(workers)
+    """Worker threads: a frame's decoding and its stripe kernels run without the GIL, and
+    threads start at once where spawned processes take a second (see
+    :mod:`scanner.core.parallel`)."""
+    return thread_pool(workers)
 
 
 def _load_chunk(path: Path, key: str) -> dict[str, NDArray] | None:
@@ -333,8 +331,6 @@ def _sweep_stripe_options(
     One window for the whole sweep keeps the estimator identical from frame to frame, and
     neither is then measured again on every frame.
     """
-    import cv2
-
     stripe = options.stripe
     if (stripe.half_window_px is not None and stripe.noise is not None) or not frames:
         return stripe

@@ -81,7 +81,7 @@ def scan_options(args: argparse.Namespace) -> ScanOptions:
     Returns
     -------
     ScanOptions
-        Stripe mode, cloud filtering, ICP and extraction processes as given on the command line.
+        Stripe mode, cloud filtering, ICP and extraction threads as given on the command line.
     """
     return ScanOptions(
         stripe=StripeOptions(end_lines=args.stretch_end_lines),

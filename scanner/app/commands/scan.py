@@ -75,7 +75,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="flag the last N lines before the stripe is cut by a depth jump or an edge "
         "(mixed pixels; 3 suits features many lines across; default 0: none)",
     )
-    p.add_argument("--workers", type=int, default=2, help="extraction processes (default 2)")
+    p.add_argument("--workers", type=int, default=2, help="extraction threads (default 2)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import cv2
 import numpy as np
 import pytest
 
@@ -96,7 +97,9 @@ def test_interrupted_run_resumes_from_saved_chunks(sweep, tmp_path):
 
 
 def test_two_workers_give_the_same_cloud_as_one(sweep, tmp_path):
+    """Two worker threads: the same cloud, and this process's OpenCV settings left alone."""
     session, cal_path, _ = sweep
+    threads_before = cv2.getNumThreads()
     one = scan_session(
         session, cal_path, ScanOptions(workers=1, chunk_frames=3), None, progress=False
     )
@@ -106,6 +109,7 @@ def test_two_workers_give_the_same_cloud_as_one(sweep, tmp_path):
     np.testing.assert_array_equal(
         one.cloud.point.positions.numpy(), two.cloud.point.positions.numpy()
     )
+    assert cv2.getNumThreads() == threads_before
 
 
 def _shifted_copy(session_root, dest, dz_mm: float):
