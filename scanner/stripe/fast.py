@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from scanner.stripe.kernels import HAVE_NUMBA, kth_smallest, line_peaks
+from scanner.stripe.kernels import HAVE_NUMBA, kth_smallest, line_peaks, saturated_centres
 from scanner.stripe.profile import _FWHM_PER_SIGMA, StripeFlag, StripeOptions, _Peaks
 
 
@@ -153,7 +153,7 @@ def _measure(
     saturated = peak >= sat
     if np.any(saturated):
         s_idx = np.flatnonzero(saturated)
-        pos[s_idx], width[s_idx] = _saturated_centres(img, lines[s_idx], cols[s_idx], sat)
+        pos[s_idx], width[s_idx] = _saturated(img, lines[s_idx], cols[s_idx], sat)
         flags[s_idx] |= np.uint8(StripeFlag.SATURATED)
     contrast = np.where(ok, contrast, 0.0).astype(np.float32)
     peaks = _Peaks(
@@ -356,10 +356,23 @@ def _clear_windows(clear: NDArray, lines: NDArray, cols: NDArray, hw: int) -> No
     clear.reshape(-1)[c + (lines * W)[:, None]] = 0
 
 
+def _saturated(img: NDArray, lines: NDArray, cols: NDArray, sat: float) -> tuple[NDArray, NDArray]:
+    """:func:`_saturated_centres` by the compiled kernel where it applies (numba, an 8- or
+    16-bit frame stored either way), by NumPy otherwise."""
+    if (
+        HAVE_NUMBA
+        and img.dtype in (np.uint8, np.uint16)
+        and (img.flags.c_contiguous or img.flags.f_contiguous)
+    ):
+        return saturated_centres(img, lines, cols, sat)
+    return _saturated_centres(img, lines, cols, sat)
+
+
 def _saturated_centres(
     img: NDArray, lines: NDArray, cols: NDArray, sat: float, reach: int = 24
 ) -> tuple[NDArray, NDArray]:
-    """Centre of the saturated run through ``cols`` and the run's length.
+    """Centre of the saturated run through ``cols`` and the run's length (the NumPy reference
+    of :func:`scanner.stripe.kernels.saturated_centres`).
 
     The run's midpoint is refined with the unsaturated flanks: the logarithm of a Gaussian is a
     parabola, fitted by weighted least squares (weights ``w**2``, Caruana's weighting) to the

@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 from scanner.core.jit import HAVE_NUMBA, njit
 from scanner.stripe.profile import _FWHM_PER_SIGMA
 
-__all__ = ["HAVE_NUMBA", "kth_smallest", "line_peaks", "steger_points"]
+__all__ = ["HAVE_NUMBA", "kth_smallest", "line_peaks", "saturated_centres", "steger_points"]
 
 _REACH = 32  # px either side of the previous line's peak where the line's is sought first
 _SPAN = 3 * _REACH  # px of that middle part, aligned; its offsets fit 8 bits
@@ -453,6 +453,132 @@ def kth_smallest(values: NDArray, k: int) -> float:
 
 
 _SELECT_DTYPES = (np.uint8, np.uint16, np.float32, np.float64)
+
+
+@njit(cache=True, nogil=True)
+def _saturated_centres(img, lines, cols, sat, reach):  # pragma: no cover - compiled
+    """:func:`saturated_centres` per peak: the run through the peak, its unsaturated flanks'
+    weighted log-parabola (normal equations solved by Cramer's rule), its vertex."""
+    W = img.shape[1]
+    n = lines.size
+    P = 2 * reach + 1
+    out = np.empty(n)
+    runs = np.empty(n)
+    vals = np.empty(P)
+    for i in range(n):
+        r = lines[i]
+        c = cols[i]
+        for k in range(P):
+            cc = c + k - reach
+            vals[k] = np.float64(img[r, cc]) if 0 <= cc < W else -np.inf
+        # The saturated run through the peak pixel (none when the peak pixel is not).
+        b = reach - 1
+        while b + 1 < P and vals[b + 1] >= sat:
+            b += 1
+        a = reach + 1
+        while a - 1 >= 0 and vals[a - 1] >= sat:
+            a -= 1
+        if vals[reach] < sat:
+            a, b = reach + 1, reach - 1
+        centre = 0.5 * (a + b)
+        run = np.float64(b - a + 1)
+        # Background: the lower of the mean levels at the window's two ends (inside the image).
+        bg = np.inf
+        for k0 in (0, P - 6):
+            total = 0.0
+            m = 0
+            for k in range(k0, k0 + 6):
+                if vals[k] > -np.inf:
+                    total += vals[k]
+                    m += 1
+            if m:
+                bg = min(bg, total / m)
+        if not np.isfinite(bg):
+            bg = 0.0
+        span = 3.0 * run + 4.0
+        mid = centre - reach
+        s = np.zeros(5)
+        rr = np.zeros(3)
+        left_n = 0
+        right_n = 0
+        for k in range(P):
+            v = vals[k]
+            w = v - bg
+            x = np.float64(k - reach)
+            if not (np.isfinite(v) and v < sat and w > 0.05 * (sat - bg)):
+                continue
+            if abs(x - mid) > span:
+                continue
+            left_n += k < a
+            right_n += k > b
+            wt = max(w, 1e-9) ** 2
+            y = np.log(max(w, 1e-9))
+            xc = x - mid
+            t = wt
+            for q in range(5):
+                s[q] += t
+                if q < 3:
+                    rr[q] += t * y
+                t *= xc
+        refined = centre
+        if left_n >= 1 and right_n >= 1 and left_n + right_n >= 3:
+            m00, m01, m02, m11, m12, m22 = s[0], s[1], s[2], s[2], s[3], s[4]
+            c00 = m11 * m22 - m12 * m12
+            c01 = m02 * m12 - m01 * m22
+            c02 = m01 * m12 - m02 * m11
+            det = m00 * c00 + m01 * c01 + m02 * c02
+            if abs(det) > 1e-12:
+                # Cramer's rule for the symmetric system: coef = adj(M) r / det.
+                c11 = m00 * m22 - m02 * m02
+                c12 = m01 * m02 - m00 * m12
+                k1 = (c01 * rr[0] + c11 * rr[1] + c12 * rr[2]) / det
+                k2 = (c02 * rr[0] + c12 * rr[1] + (m00 * m11 - m01 * m01) * rr[2]) / det
+                if k2 < 0.0:
+                    vertex = -k1 / (2.0 * k2)
+                    if np.isfinite(vertex) and abs(vertex) <= 0.5 * run + 0.5:
+                        refined = centre + vertex
+        out[i] = c + refined - reach
+        runs[i] = run
+    return out, runs
+
+
+def saturated_centres(
+    img: NDArray, lines: NDArray, cols: NDArray, sat: float, reach: int = 24
+) -> tuple[NDArray, NDArray]:
+    """:func:`scanner.stripe.fast._saturated_centres` (the NumPy reference) compiled.
+
+    Parameters
+    ----------
+    img : ndarray, shape (H, W), uint8, uint16 or float32
+        Working-orientation frame (rows are scan lines), C-contiguous or the transposed view
+        of a C-contiguous frame.
+    lines, cols : ndarray, shape (N,), int
+        Each saturated peak's line and a pixel of its saturated run.
+    sat : float
+        The saturation level.
+    reach : int
+        Pixels either side of ``cols`` searched for the run and its flanks.
+
+    Returns
+    -------
+    centre : ndarray, shape (N,), float64
+        The run's centre along the line, refined with its flanks where they allow.
+    run : ndarray, shape (N,), float64
+        The run's length, px.
+    """
+    if img.ndim != 2 or not (img.flags.c_contiguous or img.flags.f_contiguous):
+        raise ValueError(
+            f"img: expected a 2-D frame, C-contiguous or its transposed view, got shape {img.shape}"
+        )
+    if img.dtype not in (np.uint8, np.uint16, np.float32) or not img.dtype.isnative:
+        raise ValueError(f"img: expected native uint8, uint16 or float32, got {img.dtype}")
+    return _saturated_centres(
+        img,
+        np.ascontiguousarray(lines, np.int64),
+        np.ascontiguousarray(cols, np.int64),
+        float(sat),
+        int(reach),
+    )
 
 
 # Sums may be reassociated (vectorised); NaN and infinity keep their meaning.

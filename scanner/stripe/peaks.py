@@ -15,7 +15,7 @@ from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from scanner.core.jit import njit
+from scanner.core.jit import HAVE_NUMBA, njit
 from scanner.stripe.estimates import _median
 from scanner.stripe.fast import _contiguous, _measure_lines, _measure_many, _saturation_level
 from scanner.stripe.profile import StripeFlag, StripeOptions, _Peaks
@@ -183,21 +183,66 @@ def _segments(peaks: _Peaks, link_px: float, max_gap: int = 1) -> NDArray:
     # Nearest peak on an earlier line, via a sorted key line * big + pos.
     big = float(max(1e6, pos.max() + 10 * max_gap * link_px + 1))
     key = line * big + pos
-    src, dst = [], []
-    for gap in range(1, max_gap + 1):
-        j = np.searchsorted(key, (line - gap) * big + pos)
-        for cand in (j - 1, j):
-            ok = (cand >= 0) & (cand < n)
-            cc = np.clip(cand, 0, n - 1)
-            ok &= (line[cc] == line - gap) & (np.abs(pos[cc] - pos) <= gap * link_px)
-            src.append(np.flatnonzero(ok))
-            dst.append(cc[ok])
-    s = np.concatenate(src)
-    d = np.concatenate(dst)
-    graph = coo_matrix((np.ones(s.size), (s, d)), shape=(n, n))
-    _, labels_sorted = connected_components(graph, directed=False)
+    if HAVE_NUMBA:
+        labels_sorted = _link_labels(
+            np.ascontiguousarray(line, np.int64), pos, key, big, float(link_px), int(max_gap)
+        )
+    else:
+        src, dst = [], []
+        for gap in range(1, max_gap + 1):
+            j = np.searchsorted(key, (line - gap) * big + pos)
+            for cand in (j - 1, j):
+                ok = (cand >= 0) & (cand < n)
+                cc = np.clip(cand, 0, n - 1)
+                ok &= (line[cc] == line - gap) & (np.abs(pos[cc] - pos) <= gap * link_px)
+                src.append(np.flatnonzero(ok))
+                dst.append(cc[ok])
+        s = np.concatenate(src)
+        d = np.concatenate(dst)
+        graph = coo_matrix((np.ones(s.size), (s, d)), shape=(n, n))
+        _, labels_sorted = connected_components(graph, directed=False)
     labels = np.empty(n, np.int64)
     labels[order] = labels_sorted
+    return labels
+
+
+@njit(cache=True, nogil=True)
+def _link_labels(line, pos, key, big, link_px, max_gap):  # pragma: no cover - compiled
+    """:func:`_segments`' components for peaks sorted by line and position: each peak linked
+    to the nearest ones on the ``max_gap`` lines before it (the two neighbours of its key's
+    place), the links merged by union-find, the labels numbered in order of first appearance
+    (as :func:`scipy.sparse.csgraph.connected_components` numbers them)."""
+    n = line.size
+    parent = np.arange(n)
+    for i in range(n):
+        for gap in range(1, max_gap + 1):
+            j = np.searchsorted(key, (line[i] - gap) * big + pos[i])
+            for cand in (j - 1, j):
+                if cand < 0 or cand >= n:
+                    continue
+                if line[cand] != line[i] - gap or abs(pos[cand] - pos[i]) > gap * link_px:
+                    continue
+                a = i
+                while parent[a] != a:
+                    parent[a] = parent[parent[a]]
+                    a = parent[a]
+                b = cand
+                while parent[b] != b:
+                    parent[b] = parent[parent[b]]
+                    b = parent[b]
+                if a != b:
+                    parent[max(a, b)] = min(a, b)
+    labels = np.empty(n, np.int64)
+    number = np.full(n, -1, np.int64)
+    k = 0
+    for i in range(n):
+        r = i
+        while parent[r] != r:
+            r = parent[r]
+        if number[r] < 0:
+            number[r] = k
+            k += 1
+        labels[i] = number[r]
     return labels
 
 

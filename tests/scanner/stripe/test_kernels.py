@@ -8,7 +8,13 @@ import pytest
 
 from scanner.stripe import fast, kernels, precise
 from scanner.stripe.extract import StripeFlag, extract_stripe
-from scanner.stripe.kernels import HAVE_NUMBA, kth_smallest, line_peaks, steger_points
+from scanner.stripe.kernels import (
+    HAVE_NUMBA,
+    kth_smallest,
+    line_peaks,
+    saturated_centres,
+    steger_points,
+)
 from scanner.virtual_cell.analytic import StripeSegment, render_stripes
 
 pytestmark = pytest.mark.skipif(not HAVE_NUMBA, reason="numba is not installed")
@@ -325,3 +331,31 @@ def test_kth_smallest_is_numpys_partition(dtype):
 def test_kth_smallest_refuses_k_outside_the_values():
     with pytest.raises(ValueError, match="k: expected 0 <= k < 3, got 3"):
         kth_smallest(np.zeros(3, np.float32), 3)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_saturated_centres_kernel_is_the_numpy_reference(dtype):
+    """Clipped Gaussian lines of random centre, width and height, some cut by the border, some
+    flat-topped over one flank only, read from a frame and from its transposed view."""
+    rng = np.random.default_rng(23)
+    full = 255.0 if dtype == np.uint8 else 4095.0
+    n, width = 400, 96
+    u = np.arange(width)
+    centre = rng.uniform(-3.0, width + 3.0, n)
+    sigma = rng.uniform(0.8, 6.0, n)
+    height = full * rng.uniform(1.05, 8.0, n)
+    profile = height[:, None] * np.exp(-0.5 * ((u - centre[:, None]) / sigma[:, None]) ** 2)
+    profile += rng.uniform(0.0, 0.1, n)[:, None] * full * (u / width)  # a sloping background
+    profile += rng.normal(0.0, 0.004 * full, profile.shape)
+    img = np.clip(np.rint(profile), 0, full).astype(dtype)
+    sat = float(img.max())
+    lines = np.arange(n)
+    cols = np.clip(np.rint(centre), 0, width - 1).astype(np.int64)
+    cols = np.where(img[lines, cols] >= sat, cols, img.argmax(axis=1))  # on the run
+    want_pos, want_run = fast._saturated_centres(img, lines, cols, sat)
+    for frame in (img, np.ascontiguousarray(img.T).T):
+        got_pos, got_run = saturated_centres(frame, lines, cols, sat)
+        np.testing.assert_array_equal(got_run, want_run)
+        np.testing.assert_allclose(got_pos, want_pos, rtol=0, atol=1e-9)
+    refined = np.abs(want_pos - np.round(want_pos * 2) / 2) > 1e-6
+    assert np.count_nonzero(refined) > n // 2  # the flanks' fit moved most centres
