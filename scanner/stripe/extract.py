@@ -47,8 +47,7 @@ from numpy.typing import NDArray
 from scanner.core.images import check_gray_image
 from scanner.stripe.estimates import _median, auto_half_window, estimate_noise
 from scanner.stripe.fast import _measure_many as _measure_many  # for benchmarks/bench_stripe.py
-from scanner.stripe.fast import _saturation_level
-from scanner.stripe.kernels import kth_smallest
+from scanner.stripe.fast import _saturation_level, flag_low_contrast
 from scanner.stripe.orientation import orientation_from_calibration, orientation_from_image
 from scanner.stripe.peaks import _primary_and_secondary, _resolve_multi, _stretch_ends
 from scanner.stripe.precise import _curvature_shift, _refine_precise
@@ -161,14 +160,14 @@ def extract_stripe(
             noise,
         )
     if peaks.line.size >= 4:
-        typical = kth_smallest(peaks.contrast, peaks.line.size // 2)
-        if not peaks.contrast.min() >= opts.low_contrast_ratio * typical:  # NaN: look
-            low = peaks.contrast < opts.low_contrast_ratio * typical
-            peaks.flags[low] |= np.uint8(StripeFlag.LOW_CONTRAST)
+        flag_low_contrast(
+            peaks.contrast, peaks.flags, opts.low_contrast_ratio, StripeFlag.LOW_CONTRAST
+        )
 
-    ends = _stretch_ends(peaks, opts.link_px, work.shape[0], int(opts.end_lines))
-    if ends.any():
-        peaks.flags[ends] |= np.uint8(StripeFlag.STRETCH_END)
+    if opts.end_lines > 0:  # (off by default)
+        ends = _stretch_ends(peaks, opts.link_px, work.shape[0], int(opts.end_lines))
+        if ends.any():
+            peaks.flags[ends] |= np.uint8(StripeFlag.STRETCH_END)
 
     pos = peaks.pos
     across = peaks.line.astype(np.float64)

@@ -113,17 +113,11 @@ def _outputs(n):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True, inline="always", fastmath={"reassoc", "contract"})
-def _measure_window(win, hw, thr, best):  # pragma: no cover - compiled
-    """One window of ``2 hw + 5`` pixels around a peak of value ``best`` (not at a border).
-
-    Returns the centre of gravity's offset from the peak pixel, the contrast, the background
-    slope, the FWHM-equivalent width and how many pixels of ``-hw .. hw`` exceed ``thr``. The
-    background is the line through the means of the two flank pixels on each side (at
-    ``x = -/+ (hw + 1.5)``); a window whose background-subtracted sum is not positive has
-    contrast 0 and offset 0.
-    """
+def _window_sums(win, hw, thr):  # pragma: no cover - compiled
+    """One window of ``2 hw + 5`` pixels around a peak (not at a border): the sums of its
+    ``-hw .. hw`` pixels times ``x^0, x^1, x^2``, the sums of its two flank pixels on each
+    side, and how many of ``-hw .. hw`` exceed ``thr``."""
     n_core = 2 * hw + 1
-    x2 = hw * (hw + 1) * (2 * hw + 1) / 3.0  # sum of x^2, x = -hw..hw
     s0 = 0.0
     s1 = 0.0
     s2 = 0.0
@@ -138,16 +132,43 @@ def _measure_window(win, hw, thr, best):  # pragma: no cover - compiled
         n_win += p > thr
     left = np.float64(win[0]) + np.float64(win[1])
     right = np.float64(win[n_core + 2]) + np.float64(win[n_core + 3])
-    mean = 0.25 * (left + right)
-    sl = 0.5 * (right - left) / (2 * hw + 3)
-    sw = s0 - n_core * mean
-    sx = s1 - x2 * sl
-    sxx = s2 - x2 * mean
-    contrast = np.float64(best) - mean if sw > 0.0 else 0.0
-    sw = sw if sw > 0.0 else 1.0
-    mu = sx / sw
-    var = max(sxx / sw - mu * mu, 0.0)
-    return mu, contrast, sl, _FWHM_PER_SIGMA * np.sqrt(var), n_win
+    return s0, s1, s2, left, right, n_win
+
+
+@njit(cache=True, nogil=True, inline="always", fastmath={"reassoc", "contract"})
+def _finish_windows(sums, cols, peak, near, hw, pos, contrast, slope, width):  # pragma: no cover
+    """Each window's centre of gravity, contrast, background slope and FWHM-equivalent width
+    from its :func:`_window_sums` (``sums``: rows ``s0, s1, s2, left, right``), for all lines
+    at once (a loop without branches: vector divisions and roots); the lines ``near`` the
+    border get placeholders (``pos = cols``, width NaN) for :func:`scanner.stripe.fast._measure`.
+
+    The background is the line through the means of the two flank pixels on each side (at
+    ``x = -/+ (hw + 1.5)``); a window whose background-subtracted sum is not positive has
+    contrast 0 and offset 0.
+    """
+    n_core = 2 * hw + 1
+    x2 = hw * (hw + 1) * (2 * hw + 1) / 3.0  # sum of x^2, x = -hw..hw
+    for i in range(cols.size):
+        left = sums[3, i]
+        right = sums[4, i]
+        mean = 0.25 * (left + right)
+        sl = 0.5 * (right - left) / (2 * hw + 3)
+        sw = sums[0, i] - n_core * mean
+        sx = sums[1, i] - x2 * sl
+        sxx = sums[2, i] - x2 * mean
+        ok = sw > 0.0
+        contrast[i] = np.float64(peak[i]) - mean if ok else 0.0
+        sw = sw if ok else 1.0
+        mu = sx / sw
+        slope[i] = sl
+        width[i] = _FWHM_PER_SIGMA * np.sqrt(max(sxx / sw - mu * mu, 0.0))
+        pos[i] = cols[i] + mu
+    for i in range(cols.size):
+        if near[i]:
+            pos[i] = cols[i]
+            contrast[i] = 0.0
+            slope[i] = 0.0
+            width[i] = np.nan
 
 
 @njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})
@@ -206,19 +227,19 @@ def _line_peaks(img, words, step, hw, thr, search_other):  # pragma: no cover - 
                 )
         near[i] = c < hw + 2 or c > W - hw - 3  # measured by _measure
 
-    # The windows: lines independent of each other from here on.
+    # The windows: lines independent of each other from here on. Their sums first, then
+    # the divisions and roots for all lines at once.
+    sums = np.zeros((5, n))
     for i in range(n):
         if near[i]:
-            pos[i] = cols[i]
-            width[i] = np.nan
             continue
         c = cols[i]
-        mu, contrast[i], slope[i], width[i], n_win = _measure_window(
-            img[i * step, c - hw - 2 : c + hw + 3], hw, thr, peak[i]
+        sums[0, i], sums[1, i], sums[2, i], sums[3, i], sums[4, i], n_win = _window_sums(
+            img[i * step, c - hw - 2 : c + hw + 3], hw, thr
         )
-        pos[i] = c + mu
         if span_count[i] >= 0:
             other[i] = span_count[i] > n_win
+    _finish_windows(sums, cols, peak, near, hw, pos, contrast, slope, width)
     return cols, pos, peak, contrast, slope, width, near, other
 
 
@@ -294,6 +315,7 @@ def _column_peaks(src, step, hw, thr, search_other):  # pragma: no cover - compi
                 best[i] = b_best[i]
                 arg[i] = r0 + np.int64(b_arg[i])
             above[i] += np.int64(b_above[i])
+    sums = np.zeros((5, n))
     for i in range(n):
         c = arg[i]
         cols[i] = c
@@ -301,19 +323,17 @@ def _column_peaks(src, step, hw, thr, search_other):  # pragma: no cover - compi
         line = src[:, i * step]
         if c < hw + 2 or c > L - hw - 3:  # measured by _measure
             near[i] = True
-            pos[i] = c
-            width[i] = np.nan
             if search_other and best[i] > thr:
                 n_win = 0
                 for j in range(max(c - hw, 0), min(c + hw + 1, L)):
                     n_win += line[j] > thr
                 other[i] = above[i] > n_win
             continue
-        mu, contrast[i], slope[i], width[i], n_win = _measure_window(
-            line[c - hw - 2 : c + hw + 3], hw, thr, best[i]
+        sums[0, i], sums[1, i], sums[2, i], sums[3, i], sums[4, i], n_win = _window_sums(
+            line[c - hw - 2 : c + hw + 3], hw, thr
         )
-        pos[i] = c + mu
         other[i] = search_other and best[i] > thr and above[i] > n_win
+    _finish_windows(sums, cols, peak, near, hw, pos, contrast, slope, width)
     return cols, pos, peak, contrast, slope, width, near, other
 
 
