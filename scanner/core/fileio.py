@@ -8,6 +8,7 @@ import math
 import os
 import shutil
 import tempfile
+import threading
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
@@ -19,6 +20,7 @@ __all__ = [
     "atomic_output",
     "check_outputs_apart",
     "commit_together",
+    "current_umask",
     "json_int",
     "read_json_object",
     "write_json_atomic",
@@ -42,6 +44,19 @@ class InputError(ValueError):
         return (type(self), (self.path, self.reason))
 
 
+_UMASK_LOCK = threading.Lock()
+
+
+def current_umask() -> int:
+    """The process's umask. It can only be read by setting it and setting it back; the lock
+    keeps two threads writing outputs at once (the scan's workers) from reading each other's
+    0 and leaving it at 0 for the rest of the process."""
+    with _UMASK_LOCK:
+        umask = os.umask(0)
+        os.umask(umask)
+    return umask
+
+
 @contextlib.contextmanager
 def atomic_output(path: str | os.PathLike[str], suffix: str | None = None) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; rename it onto ``path`` only on success.
@@ -59,8 +74,7 @@ def atomic_output(path: str | os.PathLike[str], suffix: str | None = None) -> It
     os.close(fd)
     tmp = Path(tmp_name)
     # mkstemp makes the file private (0600); an output should get the usual umask permissions.
-    umask = os.umask(0)
-    os.umask(umask)
+    umask = current_umask()
     try:
         yield tmp
         if tmp.exists():
@@ -140,8 +154,7 @@ def commit_together() -> Iterator[Callable[[Path], Path]]:
         staging.append(folder)
         return folder / final.name
 
-    umask = os.umask(0)
-    os.umask(umask)
+    umask = current_umask()
     try:
         yield staged
         produced = [(f, folder.parent / f.name) for folder in staging for f in folder.iterdir()]

@@ -23,7 +23,7 @@ import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
 
-from scanner.core.fileio import InputError, atomic_output, write_json_atomic
+from scanner.core.fileio import InputError, atomic_output, current_umask, write_json_atomic
 
 __all__ = [
     "CLOUD_SUFFIXES",
@@ -124,9 +124,7 @@ def write_cloud(
 
 def _usual_permissions(path: Path) -> None:
     """Give a temporary file (created 0600) the mode a plain ``open`` would have (umask)."""
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(path, 0o666 & ~umask)
+    os.chmod(path, 0o666 & ~current_umask())
 
 
 def _ply_header(

@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import json
+import os
 import pickle
+import sys
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -13,6 +16,7 @@ from scanner.core.fileio import (
     InputError,
     check_outputs_apart,
     commit_together,
+    current_umask,
     read_json_object,
     write_json_atomic,
     write_text_atomic,
@@ -93,3 +97,19 @@ def test_one_name_for_two_outputs_is_refused(tmp_path: Path):
     with pytest.raises(InputError, match="named for two outputs"), commit_together() as staged:
         staged(out)
         staged(out)
+
+
+def test_the_umask_read_by_many_threads_at_once_stays_the_process_umask():
+    """Reading the umask sets it to 0 and back: unlocked, two threads (the scan's workers
+    writing chunks) read each other's 0 and can leave the process at 0 for good."""
+    before = os.umask(0o027)
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)  # threads switch between any two calls, as under load
+    try:
+        with ThreadPoolExecutor(4) as pool:
+            reads = list(pool.map(lambda _: {current_umask() for _ in range(5000)}, range(8)))
+        assert set().union(*reads) == {0o027}
+        assert current_umask() == 0o027
+    finally:
+        sys.setswitchinterval(interval)
+        os.umask(before)
