@@ -5,12 +5,15 @@ report."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
+import open3d as o3d
 from numpy.typing import NDArray
 
 from metrology.inspect.spec import InspectionSpec
+from scanner.formats.clouds import write_cloud
 from scanner.formats.meshes import TriangleMesh
 
 __all__ = [
@@ -19,6 +22,7 @@ __all__ = [
     "InspectionResult",
     "InspectionUncertainty",
     "RegionResult",
+    "write_deviations",
 ]
 
 Verdict = Literal["pass", "fail"]
@@ -254,3 +258,21 @@ class InspectionResult:
             "seconds": dict(self.seconds),
             "provenance": self.provenance,
         }
+
+
+def write_deviations(path: Path, result: InspectionResult) -> Path:
+    """``DEV.ply``: every evaluated point (nominal frame), ``deviation_mm``, ``outlier``."""
+    cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(result.points_nominal))
+    cloud.point["deviation_mm"] = o3d.core.Tensor(
+        result.deviation_mm.astype(np.float32).reshape(-1, 1)
+    )
+    cloud.point["outlier"] = o3d.core.Tensor(result.outlier.astype(np.uint8).reshape(-1, 1))
+    meta = {
+        "inspection": {
+            "nominal": result.nominal_path,
+            "cloud": result.cloud_path,
+            "verdict": result.verdict,
+        },
+        "provenance": result.provenance,
+    }
+    return write_cloud(path, cloud, meta, frame="nominal")

@@ -29,7 +29,6 @@ from pathlib import Path
 from typing import Any, Generic, Literal, TypeVar, overload
 
 import numpy as np
-import open3d as o3d
 from numpy.typing import NDArray
 
 from calibration.pipeline import CalibrationResult, calibrate_session
@@ -46,7 +45,7 @@ from metrology.ef_check import EFCheckResult, EFTolerances, run_ef_check
 from metrology.ef_report import write_ef_report
 from metrology.inspect.inspect import inspect_cloud
 from metrology.inspect.report import write_inspection_report
-from metrology.inspect.result import InspectionResult
+from metrology.inspect.result import InspectionResult, write_deviations
 from metrology.inspect.spec import load_inspection_spec
 from metrology.measure import MeasurementReport, measure_cloud
 from metrology.plan import load_plan
@@ -65,7 +64,7 @@ from scanner.formats.calibration_file import (
     read_calibration,
     write_calibration,
 )
-from scanner.formats.clouds import FORMATS, read_points, write_cloud
+from scanner.formats.clouds import FORMATS, read_points
 from scanner.formats.layout import report_beside
 from scanner.formats.meshes import read_mesh
 from scanner.formats.scan_plan import write_scan_plan
@@ -483,11 +482,13 @@ def scan(
     options: ScanOptions | None = None,
     work_dir: Path | None = None,
     progress: bool = False,
+    check_cancelled: Callable[[], None] | None = None,
 ) -> ScanRun:
     """Sweep sessions to one base-frame cloud, written atomically (``.ply``, ``.pcd``, ``.e57``).
 
     Everything that can be refused (file names, calibration, sessions, image sizes) is
-    refused before any image is decoded.
+    refused before any image is decoded. ``check_cancelled`` is called between chunks of
+    frames: what it raises stops the scan (a PLC job's cancellation).
     """
     out = Path(out)
     if out.suffix.lower() not in FORMATS:
@@ -513,6 +514,7 @@ def scan(
         work_dir=work_dir,
         progress=progress,
         calibration_path=Path(calibration_path),
+        check_cancelled=check_cancelled,
     )
     return ScanRun(result, out)
 
@@ -762,24 +764,6 @@ def inspect(
         if report_path is not None:
             write_inspection_report(result, staged(report_path))
     return InspectRun(result, out, deviations, report_path)
-
-
-def write_deviations(path: Path, result: InspectionResult) -> Path:
-    """``DEV.ply``: every evaluated point (nominal frame), ``deviation_mm``, ``outlier``."""
-    cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(result.points_nominal))
-    cloud.point["deviation_mm"] = o3d.core.Tensor(
-        result.deviation_mm.astype(np.float32).reshape(-1, 1)
-    )
-    cloud.point["outlier"] = o3d.core.Tensor(result.outlier.astype(np.uint8).reshape(-1, 1))
-    meta = {
-        "inspection": {
-            "nominal": result.nominal_path,
-            "cloud": result.cloud_path,
-            "verdict": result.verdict,
-        },
-        "provenance": result.provenance,
-    }
-    return write_cloud(path, cloud, meta, frame="nominal")
 
 
 # --------------------------------------------------------------------------------------------

@@ -9,7 +9,7 @@ workers cost an interpreter start and the imports (about a second) once per pool
 Threads (:func:`thread_pool`) for the stages whose heavy steps release the GIL: the scan's
 stripe extraction decodes frames in OpenCV and measures them in compiled kernels that run
 without the GIL, so two threads keep both cores busy without that second's start (on a
-300-frame sweep the scan took 1.8 s with threads against 4.1 s with processes).
+300-frame sweep the scan took 1.8-1.9 s with threads against 4.1 s with processes).
 """
 
 from __future__ import annotations
@@ -73,7 +73,9 @@ def thread_pool(workers: int) -> Executor:
     ``nogil``).
 
     The tasks share this process's OpenCV settings: a task must not change them (no
-    ``cv2.setNumThreads``), or the rest of the process runs with its change.
+    ``cv2.setNumThreads``), or the rest of the process runs with its change. (So an OpenCV
+    call of a task may start OpenCV's own threads beside the pool's: on the scan's decoding
+    and stripe steps that costs nothing measurable.)
     """
     if workers < 1:
         raise ValueError(f"workers: expected >= 1, got {workers}")

@@ -18,7 +18,7 @@ import logging
 import os
 import shutil
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import Executor
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -366,8 +366,12 @@ def scan_profiles(
     work_dir: Path,
     key: str,
     progress: bool = True,
+    check_cancelled: Callable[[], None] | None = None,
 ) -> tuple[dict[str, NDArray], int, int]:
     """Stripe profiles of ``frames`` (resuming saved chunks), concatenated.
+
+    ``check_cancelled`` is called after each chunk: whatever it raises stops the extraction
+    (the chunks not started are dropped, the running ones finish) and goes to the caller.
 
     Returns
     -------
@@ -418,17 +422,26 @@ def scan_profiles(
         bar = tqdm(total=n, initial=done, unit="frame", desc="stripes", leave=False)
     try:
         if options.workers > 1 and len(jobs) > 1:
-            with _pool(options.workers) as pool:
+            pool = _pool(options.workers)
+            try:
                 for c, _, e in pool.map(_extract_chunk, jobs):
                     empty += e
                     if bar is not None:
                         bar.update(min(size, n - c * size))
+                    if check_cancelled is not None:
+                        check_cancelled()
+            finally:
+                # On an error, a cancellation or an interrupt: the queued chunks are dropped
+                # (threads cannot be killed; they finish the chunk they are on).
+                pool.shutdown(wait=True, cancel_futures=True)
         else:
             for job in jobs:
                 c, _, e = _extract_chunk(job)
                 empty += e
                 if bar is not None:
                     bar.update(min(size, n - c * size))
+                if check_cancelled is not None:
+                    check_cancelled()
     finally:
         if bar is not None:
             bar.close()
@@ -531,6 +544,7 @@ def scan_session(
     progress: bool = True,
     keep_work: bool | None = None,
     calibration_path: str | os.PathLike[str] | None = None,
+    check_cancelled: Callable[[], None] | None = None,
 ) -> ScanResult:
     """Scan one or several sweep sessions into one base-frame cloud (mm), written to ``out_path``.
 
@@ -552,6 +566,8 @@ def scan_session(
     calibration_path : path, optional
         The file ``calibration`` was read from, for the cloud's provenance (a path given as
         ``calibration`` is recorded by itself).
+    check_cancelled : callable, optional
+        Called after each chunk of frames is extracted; what it raises stops the scan.
 
     Returns
     -------
@@ -601,7 +617,13 @@ def scan_session(
     try:
         t1 = time.perf_counter()
         profiles, resumed, empty = scan_profiles(
-            frames, calibration, options, chunk_dir, key, progress=progress
+            frames,
+            calibration,
+            options,
+            chunk_dir,
+            key,
+            progress=progress,
+            check_cancelled=check_cancelled,
         )
         t2 = time.perf_counter()
 

@@ -378,7 +378,14 @@ class PipelineJobs:
         ctx.session_path = self.source.acquire("sweep", ctx, recipe)
         ctx.check_cancelled()
         job = JobLayout.of(ctx.work_dir)
-        _call(stages.scan, [ctx.session_path], calibration, job.cloud, options=options)
+        _call(
+            stages.scan,
+            [ctx.session_path],
+            calibration,
+            job.cloud,
+            options=options,
+            check_cancelled=ctx.check_cancelled,
+        )
         ctx.check_cancelled()
         outcomes = []
         if plan is not None:

@@ -12,6 +12,7 @@ from scanner.core.fileio import InputError
 from scanner.formats.calibration_file import read_calibration, write_calibration
 from scanner.formats.clouds import read_cloud, read_ply_metadata
 from scanner.formats.session import read_session, write_session
+from scanner.scanning import pipeline
 from scanner.scanning.pipeline import ScanOptions, scan_session, table_cut_mm
 from scanner.virtual_cell.analytic import TableStepScene, write_table_step_sweep
 
@@ -100,6 +101,7 @@ def test_two_workers_give_the_same_cloud_as_one(sweep, tmp_path):
     """Two worker threads: the same cloud, and this process's OpenCV settings left alone."""
     session, cal_path, _ = sweep
     threads_before = cv2.getNumThreads()
+    cv2.setNumThreads(3)  # not 1, which a worker setting its own would leave too
     one = scan_session(
         session, cal_path, ScanOptions(workers=1, chunk_frames=3), None, progress=False
     )
@@ -109,7 +111,46 @@ def test_two_workers_give_the_same_cloud_as_one(sweep, tmp_path):
     np.testing.assert_array_equal(
         one.cloud.point.positions.numpy(), two.cloud.point.positions.numpy()
     )
-    assert cv2.getNumThreads() == threads_before
+    assert cv2.getNumThreads() == 3
+    cv2.setNumThreads(threads_before)
+
+
+class _Stop(Exception):
+    pass
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_a_cancelled_scan_stops_after_the_chunk_it_is_on(dense_sweep, tmp_path, workers):
+    """A PLC job's cancellation is checked after every chunk: the chunks not started are
+    dropped (61 frames in chunks of 2: 31 chunks), the error reaches the caller, nothing is
+    written and no work folder is left behind."""
+    session, cal_path, _ = dense_sweep
+    started = []
+    extract = pipeline._extract_chunk
+
+    def counted(job):
+        started.append(job.chunk)
+        return extract(job)
+
+    def cancel_after_two():
+        if len(started) >= 2:
+            raise _Stop
+
+    out = tmp_path / "cloud.ply"
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(pipeline, "_extract_chunk", counted)
+        with pytest.raises(_Stop):
+            scan_session(
+                session,
+                cal_path,
+                ScanOptions(workers=workers, chunk_frames=2),
+                out,
+                progress=False,
+                check_cancelled=cancel_after_two,
+            )
+    assert 2 <= len(started) <= 2 + 2 * workers  # not the 31 chunks
+    assert not out.exists()
+    assert [p.name for p in tmp_path.iterdir()] == []
 
 
 def _shifted_copy(session_root, dest, dz_mm: float):

@@ -231,6 +231,37 @@ def test_scan_job_reports_the_plans_first_figures_in_micrometres(
     assert outcome.report_path is not None and outcome.report_path.is_file()
 
 
+def test_a_scan_job_is_cancelled_inside_the_scan_stage(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+):
+    """The scan stage gets the job's check: a thread-worker service's shutdown stops the
+    extraction at its next chunk, not after the whole sweep."""
+    _fake_pipeline(monkeypatch, GOOD, [SimpleNamespace(actual=1.0)])
+    current = tmp_path / "calibration.json"
+    current.write_text("{}", "utf-8")
+    _session(tmp_path / "drop", "s1", "sweep", 1000.0)
+    config = PlcConfig(
+        storage=StorageConfig(calibration=str(current)),
+        recipes=[Recipe(number=3, name="r", plan="modern_sweep")],
+    )
+    ctx = _ctx(tmp_path, config, parameter=3)
+    ctx.work_dir.mkdir()
+    chunks_done = []
+
+    def scan(sessions: list[Path], calibration: Path, out: Path, **kwargs: object) -> None:
+        check = kwargs["check_cancelled"]
+        for chunk in range(10):
+            chunks_done.append(chunk)
+            if chunk == 3:
+                ctx.cancel.set()  # the service cancels while the stage runs
+            check()  # type: ignore[operator]
+
+    monkeypatch.setattr(stages, "scan", scan)
+    with pytest.raises(JobCancelled):
+        PipelineJobs(config, source=FolderSource(tmp_path / "drop")).scan(ctx)
+    assert chunks_done == [0, 1, 2, 3]
+
+
 def test_scan_job_with_a_nominal_inspects_the_cloud_against_it(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ):
