@@ -15,6 +15,9 @@ once: no transposition.
 with NumPy for all points at once: the smoothed image's gradient and Hessian at the fast
 centre, the Taylor step across the stripe and the slide back onto the scan line.
 
+:func:`saturated_centres` is :func:`scanner.stripe.fast._saturated_centres` per peak: the
+saturated run through the peak and the log-parabola of its unsaturated flanks.
+
 :func:`kth_smallest` is ``np.partition(values, k)[k]`` for the frame's few small medians (the
 typical width and contrast, the background's level), without NumPy's fixed cost per call,
 which on a thousand values is most of it.
@@ -569,9 +572,9 @@ def saturated_centres(
 
     Parameters
     ----------
-    img : ndarray, shape (H, W), uint8, uint16 or float32
+    img : ndarray, shape (H, W), uint8 or uint16
         Working-orientation frame (rows are scan lines), C-contiguous or the transposed view
-        of a C-contiguous frame.
+        of a C-contiguous frame. (Float frames, which may hold NaN, take the NumPy path.)
     lines, cols : ndarray, shape (N,), int
         Each saturated peak's line and a pixel of its saturated run.
     sat : float
@@ -590,8 +593,8 @@ def saturated_centres(
         raise ValueError(
             f"img: expected a 2-D frame, C-contiguous or its transposed view, got shape {img.shape}"
         )
-    if img.dtype not in (np.uint8, np.uint16, np.float32) or not img.dtype.isnative:
-        raise ValueError(f"img: expected native uint8, uint16 or float32, got {img.dtype}")
+    if img.dtype not in (np.uint8, np.uint16) or not img.dtype.isnative:
+        raise ValueError(f"img: expected native uint8 or uint16, got {img.dtype}")
     return _saturated_centres(
         img,
         np.ascontiguousarray(lines, np.int64),

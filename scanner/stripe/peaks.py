@@ -220,7 +220,8 @@ def _link_labels(line, pos, key, big, link_px, max_gap):  # pragma: no cover - c
             for cand in (j - 1, j):
                 if cand < 0 or cand >= n:
                     continue
-                if line[cand] != line[i] - gap or abs(pos[cand] - pos[i]) > gap * link_px:
+                # (as the NumPy path compares: a NaN position links to nothing)
+                if line[cand] != line[i] - gap or not abs(pos[cand] - pos[i]) <= gap * link_px:
                     continue
                 a = i
                 while parent[a] != a:
