@@ -123,6 +123,20 @@ def camera_correction(flange_from_cam: ArrayLike, ref_flange_from_cam: ArrayLike
     return np.concatenate([Rotation.from_matrix(c[:3, :3]).as_rotvec(), c[:3, 3]])
 
 
+def _checked_covariance(matrix: Any, shape: tuple[int, int], name: str) -> NDArray:
+    """``matrix`` as a finite, symmetric (symmetrised), positive semi-definite float64 matrix
+    of ``shape``; ValueError naming ``covariance.<name>`` otherwise."""
+    m = np.asarray(matrix, dtype=np.float64)
+    if m.shape != shape or not np.all(np.isfinite(m)):
+        raise ValueError(
+            f"covariance.{name}: expected a finite {shape[0]}x{shape[1]} matrix, got {m.shape}"
+        )
+    m = 0.5 * (m + m.T)
+    if np.linalg.eigvalsh(m).min() < -1e-9 * max(1e-30, float(np.abs(m).max())):
+        raise ValueError(f"covariance.{name}: expected a positive semi-definite matrix")
+    return m
+
+
 @dataclass(frozen=True)
 class CalibrationCovariance:
     """Covariance of a calibration's corrections, and the robot's repeatability.
@@ -147,30 +161,15 @@ class CalibrationCovariance:
     laser_origin_mm2: NDArray | None = None
 
     def __post_init__(self) -> None:
-        m = np.asarray(self.matrix, dtype=np.float64)
         p = len(PARAMETERS)
-        if m.shape != (p, p) or not np.all(np.isfinite(m)):
-            raise ValueError(f"covariance.matrix: expected a finite {p}x{p} matrix, got {m.shape}")
-        m = 0.5 * (m + m.T)
-        if np.linalg.eigvalsh(m).min() < -1e-9 * max(1e-30, float(np.abs(m).max())):
-            raise ValueError("covariance.matrix: expected a positive semi-definite matrix")
-        object.__setattr__(self, "matrix", m)
+        object.__setattr__(self, "matrix", _checked_covariance(self.matrix, (p, p), "matrix"))
         for name in ("robot_rotation_deg", "robot_translation_mm"):
             v = float(getattr(self, name))
             if not (np.isfinite(v) and v >= 0):
                 raise ValueError(f"covariance.robot.{name}: expected a finite value >= 0, got {v}")
             object.__setattr__(self, name, v)
         if self.laser_origin_mm2 is not None:
-            o = np.asarray(self.laser_origin_mm2, dtype=np.float64)
-            if o.shape != (3, 3) or not np.all(np.isfinite(o)):
-                raise ValueError(
-                    f"covariance.laser_origin_mm2: expected a finite 3x3 matrix, got {o.shape}"
-                )
-            o = 0.5 * (o + o.T)
-            if np.linalg.eigvalsh(o).min() < -1e-9 * max(1e-30, float(np.abs(o).max())):
-                raise ValueError(
-                    "covariance.laser_origin_mm2: expected a positive semi-definite matrix"
-                )
+            o = _checked_covariance(self.laser_origin_mm2, (3, 3), "laser_origin_mm2")
             object.__setattr__(self, "laser_origin_mm2", o)
 
     @property

@@ -301,9 +301,12 @@ def _covariance_or_none(path: Path, record: Any, has_origin: bool) -> Calibratio
         return None
     if origin_record is None:
         return covariance
+    if not has_origin:
+        log.warning(
+            "%s: covariance.laser_origin_mm2 ignored (the file has no laser_origin_cam)", path
+        )
+        return covariance
     try:
-        if not has_origin:
-            raise ValueError("the file has no laser_origin_cam")
         return replace(covariance, laser_origin_mm2=np.asarray(origin_record, dtype=np.float64))
     except (TypeError, ValueError) as exc:
         log.warning("%s: covariance.laser_origin_mm2 ignored (%s)", path, exc)
