@@ -118,6 +118,16 @@ def image_errors(sim: Path, mode: str) -> dict[tuple[str, str], np.ndarray]:
     return {k: np.concatenate(v) for k, v in out.items()}
 
 
+def _radial_and_elevation(
+    near: np.ndarray, centre: np.ndarray, radius: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points ``(N, 3)`` about a true sphere: their offsets from its centre ``(N, 3)``, radial
+    errors (mm) and elevations above its equator (deg), ``(N,)`` each."""
+    q = near - centre
+    r = np.linalg.norm(q, axis=1)
+    return q, r - radius, np.degrees(np.arcsin(np.clip(q[:, 2] / r, -1.0, 1.0)))
+
+
 def elevation_errors(
     points: np.ndarray, truth: CellTruth
 ) -> dict[str, list[tuple[str, int, float]]]:
@@ -127,10 +137,11 @@ def elevation_errors(
     bands = [(-91, 0), (0, 20), (20, 35), (35, 50), (50, 65), (65, 91)]
     out: dict[str, list[tuple[str, int, float]]] = {}
     for obj, near in sphere_points(points, truth):
-        q = near - np.asarray(obj.params["center_mm"], dtype=np.float64)
-        r = np.linalg.norm(q, axis=1)
-        radial = r - 0.5 * float(obj.params["diameter_mm"])
-        elev = np.degrees(np.arcsin(np.clip(q[:, 2] / r, -1.0, 1.0)))
+        _, radial, elev = _radial_and_elevation(
+            near,
+            np.asarray(obj.params["center_mm"], dtype=np.float64),
+            0.5 * float(obj.params["diameter_mm"]),
+        )
         out[obj.id] = [
             (f"{a}-{b}", int(m.sum()), float(radial[m].mean()) if m.any() else np.nan)
             for a, b in bands
@@ -152,13 +163,10 @@ def view_map(points: np.ndarray, truth: CellTruth) -> str:
     out = []
     for k, (obj, near) in enumerate(spheres):
         c0, r0 = centres[k], 0.5 * float(obj.params["diameter_mm"])
-        q = near - c0
-        r = np.linalg.norm(q, axis=1)
-        radial = r - r0
+        q, radial, el = _radial_and_elevation(near, c0, r0)
         toward = centres[1 - k] - c0 if len(centres) == 2 else np.array([1.0, 0.0, 0.0])
         toward = toward[:2] / np.linalg.norm(toward[:2])
         az = np.degrees(np.arctan2(q[:, 1] * toward[0] - q[:, 0] * toward[1], q[:, :2] @ toward))
-        el = np.degrees(np.arcsin(np.clip(q[:, 2] / r, -1.0, 1.0)))
         x, _ = fit_sphere(near, np.append(c0, r0))
         out.append(
             f"\n{obj.id}: diameter error {2 * (x[3] - r0):+.4f} mm, fitted centre moved "
