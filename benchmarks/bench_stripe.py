@@ -5,7 +5,8 @@ Prints one table per measurement. Speed is measured on one core (OpenCV limited 
 thread) against ``frame.max()`` on the same frame in the same run, and against a plain NumPy
 per-line centroid as a baseline. Accuracy is measured on analytic frames
 (:mod:`scanner.virtual_cell.analytic`) and, when given, on a virtual-cell sweep (``--cell DIR``:
-a folder written by ``simulate_cell`` with ``sweep/`` and ``sweep_stripes.npz``).
+a folder written by ``simulate_cell`` with ``sweep/``, ``sweep_stripes.npz`` and
+``calibration_true.json``), whose frames of a scene are timed too.
 
     python benchmarks/bench_stripe.py [--cell DIR] [--frames N]
 """
@@ -25,10 +26,21 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from scanner.stripe.extract import StripeOptions, auto_half_window, estimate_noise, extract_stripe
+from scanner.formats.calibration_file import read_calibration
+from scanner.formats.session import read_session
+from scanner.stripe import extract as stripe
+from scanner.stripe.extract import (
+    StripeFlag,
+    StripeOptions,
+    auto_half_window,
+    estimate_noise,
+    extract_stripe,
+    orientation_from_calibration,
+)
 from scanner.stripe.fast import _measure_lines
 from scanner.stripe.kernels import HAVE_NUMBA
 from scanner.virtual_cell.analytic import StripeSegment, render_stripes
+from scanner.virtual_cell.truth import StripeTable, along_line_errors
 
 SHAPE = (768, 1024)
 LARGE = (1024, 1280)  # the frame size of issue #16's targets
@@ -115,8 +127,6 @@ def speed_table(shape: tuple[int, int] = SHAPE) -> None:
 
 def step_table() -> None:
     """Where the fast mode's time goes: each step of one call, timed alone on the same frame."""
-    from scanner.stripe import extract as stripe
-
     cv2.setNumThreads(1)
     img, _ = _frame(0)
     H, W = img.shape
@@ -213,12 +223,52 @@ def accuracy_table(seeds: int = 8) -> None:
     print("border: the first and last 8 lines, and a stripe 1-3 px from the left edge")
 
 
+def scene_speed_table(cell_dir: Path, frames: int) -> None:
+    """Time per frame of a rendered sweep of a scene (``cell_dir/sweep``), as ``scanner scan``
+    extracts it: the orientation from the cell's calibration, window and noise fixed from
+    the first frame, frames decoded beforehand; one core, CPU time, best of 3 passes.
+
+    Unlike the one-stripe frames above, a scene's frames hold saturated runs (a bright line
+    on a white part), further peaks on many lines (the table beside an object, reflections)
+    and stripes cut by shadows: the paths around the kernel that those take are timed too.
+    """
+    cv2.setNumThreads(1)
+    session = read_session(cell_dir / "sweep")
+    calibration = read_calibration(cell_dir / "calibration_true.json")
+    orientation = orientation_from_calibration(calibration)
+    images = [session.load_laser_image(f) for f in session.frames[:frames]]
+    first = images[0] if orientation == "rows" else np.ascontiguousarray(images[0].T)
+    noise = estimate_noise(first)
+    fixed = StripeOptions(half_window_px=auto_half_window(first, noise), noise=noise)
+    profiles = [extract_stripe(img, "fast", orientation, options=fixed) for img in images]
+    saturated = np.mean([np.any(p.flags & StripeFlag.SATURATED) for p in profiles])
+    several = np.mean([p.line.size > np.unique(p.line).size for p in profiles])
+    points = np.mean([len(p) for p in profiles])
+
+    def per_frame(fn) -> float:
+        best = float("inf")
+        for _ in range(3):
+            t0 = time.process_time()
+            for img in images:
+                fn(img)
+            best = min(best, (time.process_time() - t0) / len(images))
+        return best
+
+    t_max = per_frame(lambda img: img.max())
+    h, w = images[0].shape
+    print(
+        f"\nSpeed on the sweep {cell_dir / 'sweep'} ({len(images)} frames, {w}x{h}, scan lines"
+        f" {orientation}; {points:.0f} points per frame; frames with saturated runs"
+        f" {100 * saturated:.0f} %, with several peaks on a line {100 * several:.0f} %)"
+    )
+    print(f"{'method':34s} {'time/frame':>12s} {'x frame.max()':>14s}")
+    print(f"{'frame.max()':34s} {t_max * 1e6:10.0f} us {1.0:14.1f}")
+    for mode in ("fast", "precise"):
+        t = per_frame(lambda img, m=mode: extract_stripe(img, m, orientation, options=fixed))
+        print(f"{'extract_stripe ' + mode:34s} {t * 1e6:10.0f} us {t / t_max:14.1f}")
+
+
 def cell_table(cell_dir: Path, frames: int) -> None:
-
-    from scanner.formats.session import read_session
-    from scanner.stripe.extract import StripeFlag
-    from scanner.virtual_cell.truth import StripeTable, along_line_errors
-
     session = read_session(cell_dir / "sweep")
     table = StripeTable.load(cell_dir / "sweep_stripes.npz")
     n = min(frames, len(session))
@@ -266,6 +316,7 @@ def main() -> None:
     step_table()
     accuracy_table()
     if args.cell is not None:
+        scene_speed_table(args.cell, args.frames)
         cell_table(args.cell, args.frames)
 
 
