@@ -7,7 +7,10 @@ linear in the window's pixels, so a whole frame's peaks take one matrix product
 maxima in one window) are measured one by one (:func:`_measure`), with the three-point
 Gaussian estimator or the saturated run's centre. Where numba imports, a frame's primary peaks
 come from the compiled kernel instead (:func:`_measure_lines`, :mod:`scanner.stripe.kernels`):
-the same measurement in one pass per line, without the intermediate arrays.
+the same measurement in one pass per line, without the intermediate arrays; and the choice of
+the uncommon peaks, the low-contrast flag and the saturated runs' centres are compiled too
+(:func:`_uncommon_lines`, :func:`flag_low_contrast`,
+:func:`scanner.stripe.kernels.saturated_centres`), each beside the NumPy path it equals.
 """
 
 from __future__ import annotations
@@ -301,10 +304,10 @@ def _remeasure_uncommon(
     lines, width, peak = peaks.line, peaks.width, peaks.peak
     if HAVE_NUMBA and width.dtype == np.float32 and peak.dtype == np.float32:
         near_or_none = near if near is not None else np.zeros(width.size, np.bool_)
-        typical, special = _uncommon_lines(
+        any_far, typical, special = _uncommon_lines(
             width, peak, near_or_none, np.nan if typical is None else float(typical), float(sat)
         )
-        if typical != typical:  # no window inside the image
+        if not any_far:  # no window inside the image
             return _measure(img, lines, cols, hw, sat)[0]
     else:
         if typical is None:
@@ -327,10 +330,11 @@ def _remeasure_uncommon(
 
 @njit(cache=True, nogil=True)
 def _uncommon_lines(width, peak, near, typical, sat):  # pragma: no cover - compiled
-    """:func:`_remeasure_uncommon`'s choice in one pass: the typical width (NaN ``typical``:
-    the median of the widths not ``near``; NaN back when every window is near) and the
-    indices of the peaks near the border, saturated, or wider than 1.3 times it. The limits
-    are compared in float32, as NumPy compares a float32 array with a Python float."""
+    """:func:`_remeasure_uncommon`'s choice in one pass: whether a window lies inside the
+    image (``False``: nothing else is decided), the typical width (NaN ``typical``: the median
+    of the widths not ``near``, NaN sorting last) and the indices of the peaks near the
+    border, saturated, or wider than 1.3 times it. The limits are compared in float32, as
+    NumPy compares a float32 array with a Python float."""
     n = width.size
     if typical != typical:
         far = np.empty(n, np.float32)
@@ -340,7 +344,7 @@ def _uncommon_lines(width, peak, near, typical, sat):  # pragma: no cover - comp
                 far[m] = width[i]
                 m += 1
         if m == 0:
-            return np.nan, np.empty(0, np.int64)
+            return False, np.nan, np.empty(0, np.int64)
         typical = np.float64(_kth_smallest(far[:m], m // 2))
     wide = np.float32(1.3 * typical)
     top = np.float32(sat)
@@ -350,7 +354,7 @@ def _uncommon_lines(width, peak, near, typical, sat):  # pragma: no cover - comp
         if width[i] > wide or peak[i] >= top or near[i]:
             special[k] = i
             k += 1
-    return typical, special[:k]
+    return True, typical, special[:k]
 
 
 @njit(cache=True, nogil=True)

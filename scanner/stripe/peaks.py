@@ -180,9 +180,12 @@ def _segments(peaks: _Peaks, link_px: float, max_gap: int = 1) -> NDArray:
     order = np.lexsort((peaks.pos, peaks.line))
     line = peaks.line[order]
     pos = peaks.pos[order]
-    # Nearest peak on an earlier line, via a sorted key line * big + pos.
-    big = float(max(1e6, pos.max() + 10 * max_gap * link_px + 1))
-    key = line * big + pos
+    # Nearest peak on an earlier line, via a sorted key line * big + pos. A NaN position
+    # (sorted last on its line) links to nothing: it gets the key after the line's others.
+    finite = np.isfinite(pos)
+    top = float(pos[finite].max()) if finite.any() else 0.0
+    big = float(max(1e6, top + 10 * max_gap * link_px + 1))
+    key = line * big + np.where(finite, pos, big - 1.0)
     if HAVE_NUMBA:
         labels_sorted = _link_labels(
             np.ascontiguousarray(line, np.int64), pos, key, big, float(link_px), int(max_gap)

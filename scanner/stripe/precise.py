@@ -44,6 +44,7 @@ def _refine_precise(img: NDArray, peaks: _Peaks, sigma: float) -> tuple[NDArray,
         and img.dtype in (np.uint8, np.uint16, np.float32)
         and img.dtype.isnative
         and (img.flags.c_contiguous or img.flags.f_contiguous)
+        and not (img.dtype == np.float32 and np.isnan(img.max()))  # NaN: as NumPy treats it
     ):
         pos = steger_points(img, peaks.line, peaks.pos, peaks.slope, level, sat, sigma)
         return pos, np.zeros(pos.size)

@@ -47,6 +47,14 @@ def _frame(kind: str, width: int = SHAPE[1]):
             StripeSegment((40, 200), (250.0, -0.1), amplitude=120.0),
             StripeSegment((100, 140), (160.0, 0.21), amplitude=110.0),
         ]
+    elif kind == "dim":  # a stripe dimming along its length (low-contrast peaks)
+        segs = [
+            StripeSegment((0, 150), (150.3, 0.21, -2e-4), amplitude=170.0),
+            StripeSegment((150, 240), (150.3, 0.21, -2e-4), amplitude=24.0),
+        ]
+    elif kind == "float32":  # grey levels that are not integers (rendered 16-bit, scaled)
+        scale, dtype = 64.0, np.uint16
+        segs.append(StripeSegment((80, 120), (2.0, 0.0), amplitude=210.0))
     elif kind == "double":  # two maxima inside one window
         segs = [
             StripeSegment((0, 240), (120.0, 0.0), amplitude=170.0, sigma_px=1.0),
@@ -62,21 +70,26 @@ def _frame(kind: str, width: int = SHAPE[1]):
         dtype=dtype,
         full_scale=255.0 * scale,
     )
+    if kind == "float32":
+        return img.astype(np.float32) / np.float32(scale * 1.37), 255.0 / 1.37, hw
     return img, 255.0 * scale, hw
 
 
-KINDS = ["single", "border", "saturated", "uint16", "second", "double"]
+KINDS = ["single", "border", "saturated", "uint16", "second", "double", "dim", "float32"]
 
 
 def _numpy_primary(img, hw, sat, thr):
-    """The NumPy path's primary peaks and lines with further candidates (as peaks.py)."""
+    """The NumPy path's primary peaks and lines with further candidates (as peaks.py), none
+    of it compiled (as where numba cannot be imported)."""
     H = img.shape[0]
     cols = img.argmax(axis=1)
     if img.dtype == np.uint8:
         mask = cv2.threshold(img, min(thr, 254.0), 1, cv2.THRESH_BINARY)[1]
     else:
         mask = (img > thr).astype(np.uint8)
-    prim = fast._measure_many(img, np.arange(H), cols, hw, sat, clear=mask)
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(fast, "HAVE_NUMBA", False)
+        prim = fast._measure_many(img, np.arange(H), cols, hw, sat, clear=mask)
     return prim, cols, mask.max(axis=1) > 0
 
 
@@ -112,6 +125,8 @@ def test_kernel_measures_the_primary_peaks_as_numpy_does(kind, width):
         assert flags & StripeFlag.AMBIGUOUS
     if kind == "second":
         assert np.count_nonzero(other) >= 150
+    if kind == "float32":
+        assert np.any(img != np.rint(img))
 
 
 def test_kernel_finds_the_first_maximum_and_every_candidate_on_random_lines():
@@ -235,6 +250,8 @@ def test_extract_stripe_gives_the_numpy_profile(kind, orientation, numpy_path):
         np.testing.assert_allclose(got.u, want.u, rtol=0, atol=1e-4)
         np.testing.assert_allclose(got.v, want.v, rtol=0, atol=1e-4)
         np.testing.assert_allclose(got.width_px, want.width_px, rtol=0, atol=1e-3)
+        if kind == "dim":
+            assert np.count_nonzero(want.flags & StripeFlag.LOW_CONTRAST) > 50
 
 
 @pytest.mark.parametrize("sigma", [1.0, 1.5, 2.7])
@@ -272,9 +289,12 @@ def test_float_frames_with_nan_keep_the_numpy_path(numpy_path):
     assert fast._measure_lines(f, 4, np.inf, 30.0) is not None
     f[10, 5] = np.nan
     assert fast._measure_lines(f, 4, np.inf, 30.0) is None
-    got = extract_stripe(f, mode="fast", orientation="rows", noise=2.0)
-    want = numpy_path(f, mode="fast", orientation="rows", noise=2.0)
-    np.testing.assert_array_equal(got.u, want.u)
+    f[51, 160:163] = np.nan  # inside the precise mode's patch around row 50's centre
+    for mode in ("fast", "precise"):
+        got = extract_stripe(f, mode=mode, orientation="rows", noise=2.0)
+        want = numpy_path(f, mode=mode, orientation="rows", noise=2.0)
+        np.testing.assert_array_equal(got.u, want.u)
+        np.testing.assert_array_equal(got.v, want.v)
 
 
 def test_auto_half_window_is_the_numpy_one(monkeypatch):
@@ -362,3 +382,19 @@ def test_saturated_centres_kernel_is_the_numpy_reference(dtype):
         refined = np.abs(want_pos - np.round(want_pos * 2) / 2) > 1e-6
         assert np.count_nonzero(refined) > n // 3  # the flanks' fit moved most centres
     assert np.count_nonzero(img[lines, near] < sat) > 30  # peak pixels off the run tried
+
+
+def test_windows_whose_width_is_undefined_on_most_lines_are_chosen_as_numpy_does(numpy_path):
+    """Minus infinity in a flank pixel of most lines gives those windows no width: the median
+    width is then NaN, which is not the same as no window inside the image."""
+    img, _, hw = _frame("single")
+    f = img.astype(np.float32)
+    cols = f.argmax(axis=1)
+    f[np.arange(200), cols[:200] + hw + 2] = -np.inf
+    with np.errstate(invalid="ignore"):
+        got = extract_stripe(f, mode="fast", orientation="rows", noise=2.0, half_window_px=hw)
+        want = numpy_path(f, mode="fast", orientation="rows", noise=2.0, half_window_px=hw)
+    assert want.line.size == 240
+    np.testing.assert_array_equal(got.line, want.line)
+    np.testing.assert_array_equal(got.flags, want.flags)
+    np.testing.assert_allclose(got.u, want.u, rtol=0, atol=1e-4)

@@ -48,3 +48,32 @@ def test_segments_follow_a_stripe_across_a_dropout_only_with_a_gap_of_two():
     p = _Peaks(line, pos, z, z, z, np.zeros(line.size, np.uint8), z)
     np.testing.assert_array_equal(peaks._segments(p, 1.0, max_gap=1), [0, 0, 0, 1, 1, 1])
     np.testing.assert_array_equal(peaks._segments(p, 1.0, max_gap=2), [0, 0, 0, 0, 0, 0])
+
+
+def _partition(labels: np.ndarray) -> list[frozenset[int]]:
+    groups: dict[int, set[int]] = {}
+    for i, lab in enumerate(labels.tolist()):
+        groups.setdefault(lab, set()).add(i)
+    return sorted(frozenset(g) for g in groups.values())
+
+
+@pytest.mark.parametrize("numba", [True, False])
+def test_a_nan_position_links_to_nothing_and_leaves_the_others_linked(numba, monkeypatch):
+    """The peaks with a position link as they would without the NaN ones, which stay alone
+    (a NaN in the sort key would unsort it and lose links)."""
+    if numba and not HAVE_NUMBA:
+        pytest.skip("numba is not installed")
+    monkeypatch.setattr(peaks, "HAVE_NUMBA", numba)
+    rng = np.random.default_rng(8)
+    for _ in range(30):
+        p = _random_peaks(rng)
+        nan = rng.random(p.line.size) < 0.1
+        pos = np.where(nan, np.nan, p.pos)
+        z = np.zeros(p.line.size, np.float32)
+        with_nan = _Peaks(p.line, pos, z, z, z, np.zeros(p.line.size, np.uint8), z)
+        got = peaks._segments(with_nan, link_px=2.0, max_gap=2)
+        kept = np.flatnonzero(~nan)
+        alone = _Peaks(p.line[kept], pos[kept], *([z[kept]] * 3), z[kept].astype(np.uint8), z[kept])
+        want = peaks._segments(alone, link_px=2.0, max_gap=2)
+        assert _partition(got[kept]) == _partition(want)
+        assert all(np.count_nonzero(got == got[i]) == 1 for i in np.flatnonzero(nan))
