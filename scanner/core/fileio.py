@@ -45,12 +45,24 @@ class InputError(ValueError):
 
 
 _UMASK_LOCK = threading.Lock()
+_PROC_STATUS = "/proc/self/status"
 
 
 def current_umask() -> int:
-    """The process's umask. It can only be read by setting it and setting it back; the lock
-    keeps two threads writing outputs at once (the scan's workers) from reading each other's
-    0 and leaving it at 0 for the rest of the process."""
+    """The process's umask, for giving an output the mode a plain ``open`` would.
+
+    Read from ``/proc/self/status`` where Linux gives it (4.7 and later). Elsewhere it can only
+    be read by setting it and setting it back: under a lock, so that two threads writing
+    outputs at once (the scan's workers) do not read each other's 0 and leave the process at
+    0 for good (a file another thread creates in that instant still gets mode 0666).
+    """
+    try:
+        with open(_PROC_STATUS, encoding="ascii") as status:
+            for line in status:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
     with _UMASK_LOCK:
         umask = os.umask(0)
         os.umask(umask)

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from scanner.core import fileio
 from scanner.core.config import ConfigError
 from scanner.core.fileio import (
     InputError,
@@ -99,9 +100,17 @@ def test_one_name_for_two_outputs_is_refused(tmp_path: Path):
         staged(out)
 
 
-def test_the_umask_read_by_many_threads_at_once_stays_the_process_umask():
-    """Reading the umask sets it to 0 and back: unlocked, two threads (the scan's workers
-    writing chunks) read each other's 0 and can leave the process at 0 for good."""
+@pytest.mark.parametrize("proc", [True, False])
+def test_the_umask_read_by_many_threads_at_once_stays_the_process_umask(
+    proc, monkeypatch, tmp_path
+):
+    """Read from /proc where Linux gives it; otherwise by setting it to 0 and back, which
+    unlocked lets two threads (the scan's workers writing chunks) read each other's 0 and
+    leave the process at 0 for good."""
+    if not proc:
+        monkeypatch.setattr(fileio, "_PROC_STATUS", str(tmp_path / "no-such-file"))
+    elif not os.path.exists(fileio._PROC_STATUS):
+        pytest.skip("no /proc/self/status on this platform")
     before = os.umask(0o027)
     interval = sys.getswitchinterval()
     sys.setswitchinterval(1e-6)  # threads switch between any two calls, as under load
