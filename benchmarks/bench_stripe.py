@@ -224,9 +224,10 @@ def accuracy_table(seeds: int = 8) -> None:
 
 
 def scene_speed_table(cell_dir: Path, frames: int) -> None:
-    """Time per frame of a rendered sweep of a scene (``cell_dir/sweep``), as ``scanner scan``
-    extracts it: the orientation from the cell's calibration, window and noise fixed from
-    the first frame, frames decoded beforehand; one core, CPU time, best of 3 passes.
+    """Time per frame of a rendered sweep of a scene (``cell_dir/sweep``), much as ``scanner
+    scan`` extracts it: the orientation from the cell's calibration, window and noise fixed
+    once (from the first frame; the scan takes the median of five), no laser-off frame, the
+    frames decoded beforehand; one core, CPU time, best of 3 passes.
 
     Unlike the one-stripe frames above, a scene's frames hold saturated runs (a bright line
     on a white part), further peaks on many lines (the table beside an object, reflections)

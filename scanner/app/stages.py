@@ -488,7 +488,8 @@ def scan(
 
     Everything that can be refused (file names, calibration, sessions, image sizes) is
     refused before any image is decoded. ``check_cancelled`` is called between chunks of
-    frames: what it raises stops the scan (a PLC job's cancellation).
+    frames and between the later steps: what it raises stops the scan (a PLC job's
+    cancellation).
     """
     out = Path(out)
     if out.suffix.lower() not in FORMATS:

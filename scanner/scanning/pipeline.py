@@ -567,7 +567,8 @@ def scan_session(
         The file ``calibration`` was read from, for the cloud's provenance (a path given as
         ``calibration`` is recorded by itself).
     check_cancelled : callable, optional
-        Called after each chunk of frames is extracted; what it raises stops the scan.
+        Called after each chunk of frames is extracted, after the triangulation and after
+        the sweeps' ICP; what it raises stops the scan.
 
     Returns
     -------
@@ -644,6 +645,8 @@ def scan_session(
         points = points[ok]
         t3 = time.perf_counter()
 
+        if check_cancelled is not None:
+            check_cancelled()
         warnings: list[str] = []
         corrections = []
         if options.icp and len(sweep_ids) > 1:
@@ -666,6 +669,8 @@ def scan_session(
                 elif not c.applied:
                     warnings.append(f"sweep {c.sweep}: not refined ({c.note})")
 
+        if check_cancelled is not None:
+            check_cancelled()
         frame_ids = np.array([f.id for f in frames], dtype=np.int32)
         attributes = {
             "intensity": profiles["intensity"][ok].astype(np.float32),

@@ -102,17 +102,20 @@ def test_two_workers_give_the_same_cloud_as_one(sweep, tmp_path):
     session, cal_path, _ = sweep
     threads_before = cv2.getNumThreads()
     cv2.setNumThreads(3)  # not 1, which a worker setting its own would leave too
-    one = scan_session(
-        session, cal_path, ScanOptions(workers=1, chunk_frames=3), None, progress=False
-    )
-    two = scan_session(
-        session, cal_path, ScanOptions(workers=2, chunk_frames=3), None, progress=False
-    )
+    try:
+        one = scan_session(
+            session, cal_path, ScanOptions(workers=1, chunk_frames=3), None, progress=False
+        )
+        two = scan_session(
+            session, cal_path, ScanOptions(workers=2, chunk_frames=3), None, progress=False
+        )
+        threads_after = cv2.getNumThreads()
+    finally:
+        cv2.setNumThreads(threads_before)
     np.testing.assert_array_equal(
         one.cloud.point.positions.numpy(), two.cloud.point.positions.numpy()
     )
-    assert cv2.getNumThreads() == 3
-    cv2.setNumThreads(threads_before)
+    assert threads_after == 3
 
 
 class _Stop(Exception):
@@ -151,6 +154,30 @@ def test_a_cancelled_scan_stops_after_the_chunk_it_is_on(dense_sweep, tmp_path, 
     assert 2 <= len(started) <= 2 + 2 * workers  # not the 31 chunks
     assert not out.exists()
     assert [p.name for p in tmp_path.iterdir()] == []
+
+
+def test_a_scan_cancelled_after_its_extraction_writes_nothing(dense_sweep, tmp_path):
+    """The check is called after the last chunk too, after the triangulation (61 frames in
+    chunks of 8: 8 chunks, then the ninth call)."""
+    session, cal_path, _ = dense_sweep
+    calls = []
+
+    def cancel_after_extraction():
+        calls.append(1)
+        if len(calls) == 9:
+            raise _Stop
+
+    out = tmp_path / "cloud.ply"
+    with pytest.raises(_Stop):
+        scan_session(
+            session,
+            cal_path,
+            ScanOptions(workers=2, chunk_frames=8),
+            out,
+            progress=False,
+            check_cancelled=cancel_after_extraction,
+        )
+    assert not out.exists() and list(tmp_path.iterdir()) == []
 
 
 def _shifted_copy(session_root, dest, dz_mm: float):
