@@ -209,18 +209,23 @@ def test_full_calibration_replaces_the_current_one_only_when_it_passes(
         assert current.read_text("utf-8") == "old" and kept == []
 
 
+def _scan_recipe_config(tmp_path: Path) -> PlcConfig:
+    """A current calibration, one sweep session dropped, recipe 3 measuring the modern plan."""
+    current = tmp_path / "calibration.json"
+    current.write_text("{}", "utf-8")
+    _session(tmp_path / "drop", "s1", "sweep", 1000.0)
+    return PlcConfig(
+        storage=StorageConfig(calibration=str(current)),
+        recipes=[Recipe(number=3, name="r", plan="modern_sweep")],
+    )
+
+
 def test_scan_job_reports_the_plans_first_figures_in_micrometres(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ):
     rows = [SimpleNamespace(actual=25.0123), SimpleNamespace(actual=None)]
     _fake_pipeline(monkeypatch, GOOD, rows)
-    current = tmp_path / "calibration.json"
-    current.write_text("{}", "utf-8")
-    _session(tmp_path / "drop", "s1", "sweep", 1000.0)
-    config = PlcConfig(
-        storage=StorageConfig(calibration=str(current)),
-        recipes=[Recipe(number=3, name="r", plan="modern_sweep")],
-    )
+    config = _scan_recipe_config(tmp_path)
     jobs = PipelineJobs(config, source=FolderSource(tmp_path / "drop"))
     ctx = _ctx(tmp_path, config, parameter=3)
     ctx.work_dir.mkdir()
@@ -237,13 +242,7 @@ def test_a_scan_job_is_cancelled_inside_the_scan_stage(
     """The scan stage gets the job's check: a thread-worker service's shutdown stops the
     extraction at its next chunk, not after the whole sweep."""
     _fake_pipeline(monkeypatch, GOOD, [SimpleNamespace(actual=1.0)])
-    current = tmp_path / "calibration.json"
-    current.write_text("{}", "utf-8")
-    _session(tmp_path / "drop", "s1", "sweep", 1000.0)
-    config = PlcConfig(
-        storage=StorageConfig(calibration=str(current)),
-        recipes=[Recipe(number=3, name="r", plan="modern_sweep")],
-    )
+    config = _scan_recipe_config(tmp_path)
     ctx = _ctx(tmp_path, config, parameter=3)
     ctx.work_dir.mkdir()
     chunks_done = []
