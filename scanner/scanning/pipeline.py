@@ -1,12 +1,11 @@
 """Sweep sessions to a stitched cloud on disk: the ``scanner scan`` job.
 
 Frames stream through worker threads in chunks (decoding and the stripe kernels release the
-GIL); each chunk's stripe profiles are saved as
-one ``.npz`` under a work folder named after a hash of the sessions, the calibration and the
-extraction options, so an interrupted run resumes where it stopped. The profiles are then
-triangulated in one batch (pixels to base frame), stitched into an Open3D tensor cloud with
-per-point ``intensity``, ``width_px``, ``flags``, ``frame_id``, ``sweep_id`` and written
-atomically.
+GIL); each chunk's stripe profiles are saved as one ``.npz`` under a work folder named after a
+hash of the sessions, the calibration and the extraction options, so an interrupted run
+resumes where it stopped. The profiles are then triangulated in one batch (pixels to base
+frame), stitched into an Open3D tensor cloud with per-point ``intensity``, ``width_px``,
+``flags``, ``frame_id``, ``sweep_id`` and written atomically.
 """
 
 from __future__ import annotations
