@@ -209,6 +209,16 @@ def _segments(peaks: _Peaks, link_px: float, max_gap: int = 1) -> NDArray:
     return labels
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _root(parent, a):  # pragma: no cover - compiled
+    """The root of ``a`` in the union-find forest ``parent`` (its paths halved on the way:
+    every merge below keeps the smaller root, so a component's root is its first member)."""
+    while parent[a] != a:
+        parent[a] = parent[parent[a]]
+        a = parent[a]
+    return a
+
+
 @njit(cache=True, nogil=True)
 def _link_labels(line, pos, key, big, link_px, max_gap):  # pragma: no cover - compiled
     """:func:`_segments`' components for peaks sorted by line and position: each peak linked
@@ -226,23 +236,15 @@ def _link_labels(line, pos, key, big, link_px, max_gap):  # pragma: no cover - c
                 # (as the NumPy path compares: a NaN position links to nothing)
                 if line[cand] != line[i] - gap or not abs(pos[cand] - pos[i]) <= gap * link_px:
                     continue
-                a = i
-                while parent[a] != a:
-                    parent[a] = parent[parent[a]]
-                    a = parent[a]
-                b = cand
-                while parent[b] != b:
-                    parent[b] = parent[parent[b]]
-                    b = parent[b]
+                a = _root(parent, i)
+                b = _root(parent, cand)
                 if a != b:
                     parent[max(a, b)] = min(a, b)
     labels = np.empty(n, np.int64)
     number = np.full(n, -1, np.int64)
     k = 0
     for i in range(n):
-        r = i
-        while parent[r] != r:
-            r = parent[r]
+        r = _root(parent, i)
         if number[r] < 0:
             number[r] = k
             k += 1
@@ -308,10 +310,8 @@ def _line_run_ends(line, pos, link_px, n_lines, end_lines):  # pragma: no cover 
             k += 1
             continue
         if a >= 0 and b >= 0:
-            while parent[a] != a:
-                a = parent[a]
-            while parent[b] != b:
-                b = parent[b]
+            a = _root(parent, a)
+            b = _root(parent, b)
             if a != b:
                 parent[max(a, b)] = min(a, b)
             label[i] = min(a, b)
@@ -320,9 +320,7 @@ def _line_run_ends(line, pos, link_px, n_lines, end_lines):  # pragma: no cover 
     first = np.full(k, n_lines, np.int64)
     last = np.full(k, -1, np.int64)
     for i in range(n):
-        r = label[i]
-        while parent[r] != r:
-            r = parent[r]
+        r = _root(parent, label[i])
         label[i] = r
         first[r] = min(first[r], line[i])
         last[r] = max(last[r], line[i])
