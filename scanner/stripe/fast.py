@@ -23,6 +23,7 @@ from numpy.typing import NDArray
 
 from scanner.core.jit import njit
 from scanner.stripe.kernels import (
+    _FLAT_CURVATURE,
     HAVE_NUMBA,
     _kth_smallest,
     kth_smallest,
@@ -517,8 +518,11 @@ def _saturated_centres(
         good = np.abs(det) > 1e-12
         coef = np.zeros((k.size, 3))
         coef[good] = np.linalg.solve(m[k][good], r[k][good][:, :, None])[:, :, 0]
+        # A parabola whose curvature is rounding (flanks all at one level: a saturated run on
+        # paper about as bright) has no vertex.
         c2 = coef[:, 2]
-        vertex = np.where(c2 < 0, -coef[:, 1] / (2 * np.where(c2 < 0, c2, -1.0)), np.nan)
+        curved = c2 < -_FLAT_CURVATURE * np.maximum(np.abs(coef[:, 0]), 1.0)
+        vertex = np.where(curved, -coef[:, 1] / (2 * np.where(curved, c2, -1.0)), np.nan)
         plausible = good & np.isfinite(vertex) & (np.abs(vertex) <= 0.5 * run[k] + 0.5)
         refined[k] = np.where(plausible, centre[k] + vertex, centre[k])
     return cols + refined - mid, run

@@ -478,8 +478,14 @@ def kth_smallest(values: NDArray, k: int) -> float:
 _SELECT_DTYPES = (np.uint8, np.uint16, np.float32, np.float64)
 
 
+#: Relative curvature below which the log-parabola of a saturated run's flanks is flat: far
+#: above double rounding (about 1e-16 of the level's logarithm), far below any real line's
+#: (a Gaussian of sigma 30 px curves by 5.6e-4 per px squared).
+_FLAT_CURVATURE = 1e-9
+
+
 @njit(cache=True, nogil=True)
-def _saturated_centres(img, lines, cols, sat, reach):  # pragma: no cover - compiled
+def _saturated_centres(img, lines, cols, sat, reach, flat):  # pragma: no cover - compiled
     """:func:`saturated_centres` per peak: the run through the peak, its unsaturated flanks'
     weighted log-parabola (normal equations solved by Cramer's rule), its vertex."""
     W = img.shape[1]
@@ -554,9 +560,10 @@ def _saturated_centres(img, lines, cols, sat, reach):  # pragma: no cover - comp
                 # Cramer's rule for the symmetric system: coef = adj(M) r / det.
                 c11 = m00 * m22 - m02 * m02
                 c12 = m01 * m02 - m00 * m12
+                k0 = (c00 * rr[0] + c01 * rr[1] + c02 * rr[2]) / det
                 k1 = (c01 * rr[0] + c11 * rr[1] + c12 * rr[2]) / det
                 k2 = (c02 * rr[0] + c12 * rr[1] + (m00 * m11 - m01 * m01) * rr[2]) / det
-                if k2 < 0.0:
+                if k2 < -flat * max(abs(k0), 1.0):  # (a curvature that is rounding: flat)
                     vertex = -k1 / (2.0 * k2)
                     if np.isfinite(vertex) and abs(vertex) <= 0.5 * run + 0.5:
                         refined = centre + vertex
@@ -601,6 +608,7 @@ def saturated_centres(
         np.ascontiguousarray(cols, np.int64),
         float(sat),
         int(reach),
+        _FLAT_CURVATURE,
     )
 
 
