@@ -3,19 +3,22 @@
 The ring detector's coarse stage looks for the target's diameters among every Hough line of
 its line mask (:func:`calibration.detection.concentric_rays._hough_lines`), at 0.25 deg
 steps. ``cv2.HoughLines`` votes pixel by pixel: each mask pixel adds one vote to each of the
-720 rows of a 9.5 MB accumulator, and most of its time (a fifth of a 1280x1024 view's
-detection) goes to cache misses. :func:`hough_lines` gives the same lines, to the bit and in
-the same order, angle by angle instead: one accumulator row at a time (4 partial rows,
-interleaved, so that runs of votes into one cell do not wait on each other), each row's
-local maxima taken as soon as its neighbours are complete, the lines then ordered by votes
-(a counting sort; within equal votes, by accumulator index, as OpenCV orders them). About
-1.6 times faster than OpenCV's on the detector's masks (``benchmarks/RESULTS.md``).
+720 rows of a 13 MB accumulator (1280x1024 image), and most of its time (about 15 % of such
+a view's detection) went to cache misses. :func:`hough_lines` gives the same lines, to the
+bit and in the same order, angle by angle instead: one accumulator row at a time (4 partial
+rows, interleaved, so that runs of votes into one cell do not wait on each other), each
+row's local maxima taken as soon as its neighbours are complete, the lines then ordered by
+votes (a counting sort; within equal votes, by accumulator index, as OpenCV orders them).
+About 1.6 times faster than OpenCV's on the detector's masks (``benchmarks/RESULTS.md``,
+thirty-first session).
 
 OpenCV's arithmetic is kept exactly: the angle table accumulated in float32, each vote's
-``rho = x cos + y sin`` in float32 and rounded half to even, the peak test (strictly above
-the threshold and the lower neighbours, at least the upper ones), the lines' float32
-``(rho, theta)``. A test compares the two on seeded masks; without numba
-(:data:`HAVE_NUMBA`) OpenCV's function is called instead.
+``rho = x cos + y sin`` in float32 (two products and a sum, not fused: numba fuses nothing
+without ``fastmath``, and neither does OpenCV's x86-64 build; a build that fuses them, as
+compilers may on aarch64, would differ in the last bit, and the test comparing the two
+would say so) and rounded half to even, the peak test (strictly above the threshold and the
+lower neighbours, at least the upper ones), the lines' float32 ``(rho, theta)``. Without
+numba (:data:`HAVE_NUMBA`) OpenCV's function is called instead.
 """
 
 from __future__ import annotations
@@ -60,6 +63,7 @@ def _votes_and_peaks(us, vs, tab_cos, tab_sin, numrho, threshold):  # pragma: no
     peak_r = np.empty(cap, np.int32)
     peak_votes = np.empty(cap, np.int32)
     m = 0
+    top = 0  # the most votes of a peak
     # Row i of the accumulator holds angle i - 1; rows 0 and numangle + 1 are its zero guard.
     for i in range(1, numangle + 2):
         cur = rows[i % 3]
@@ -99,12 +103,13 @@ def _votes_and_peaks(us, vs, tab_cos, tab_sin, numrho, threshold):  # pragma: no
                     peak_r[m] = r - 1
                     peak_votes[m] = a
                     m += 1
+                    top = max(top, a)
     # Most votes first; equal votes in the order found (OpenCV's: by accumulator index).
-    start = np.zeros(n_pts + 2, np.int64)
+    start = np.zeros(top + 1, np.int64)
     for q in range(m):
         start[peak_votes[q]] += 1
     total = 0
-    for a in range(n_pts + 1, -1, -1):
+    for a in range(top, -1, -1):
         count = start[a]
         start[a] = total
         total += count
@@ -138,7 +143,7 @@ def hough_lines(mask: NDArray, theta_step_rad: float, threshold: int) -> NDArray
     theta_step_rad : float
         The angle step (> 0); angles run from 0 below pi. The rho step is 1 px.
     threshold : int
-        A line needs more votes than this.
+        A line needs more votes than this (an integer).
 
     Returns
     -------
@@ -150,17 +155,21 @@ def hough_lines(mask: NDArray, theta_step_rad: float, threshold: int) -> NDArray
         raise ValueError(f"mask: expected a 2-D uint8 array, got {mask.dtype} {mask.shape}")
     step = np.float32(theta_step_rad)
     if not (np.isfinite(step) and step > 0):
-        raise ValueError(f"theta_step_rad: expected a finite step > 0, got {theta_step_rad}")
+        raise ValueError(
+            f"theta_step_rad: expected a finite step > 0 (in float32), got {theta_step_rad}"
+        )
+    if int(threshold) != threshold:
+        raise ValueError(f"threshold: expected an integer, got {threshold}")
     if not HAVE_NUMBA:  # pragma: no cover - numba is a dependency
         lines = cv2.HoughLines(mask, 1.0, float(theta_step_rad), int(threshold))
         return np.zeros((0, 2), np.float32) if lines is None else lines[:, 0, :]
     h, w = mask.shape
     numrho = 2 * (w + h) + 1
     tab_cos, tab_sin = _angle_table(_numangle(step), step)
-    vs, us = np.nonzero(mask)
-    n, r = _votes_and_peaks(
-        us.astype(np.float32), vs.astype(np.float32), tab_cos, tab_sin, numrho, int(threshold)
-    )
+    rows, cols = np.nonzero(mask)
+    us, vs = cols.astype(np.float32), rows.astype(np.float32)
+    del rows, cols  # (int64: twice the float32 copies, not kept through the votes)
+    n, r = _votes_and_peaks(us, vs, tab_cos, tab_sin, numrho, int(threshold))
     rho = r.astype(np.float32) - np.float32((numrho - 1) * 0.5)
     theta = n.astype(np.float32) * step
     return np.column_stack([rho, theta])
