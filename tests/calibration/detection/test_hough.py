@@ -9,7 +9,9 @@ import pytest
 from calibration.detection import concentric_rays
 from calibration.detection.detect import detect_target
 from calibration.detection.hough import HAVE_NUMBA, hough_lines
+from scanner.core.targets import ConcentricCirclesTarget, OrientationMarker
 from scanner.virtual_cell.randomised import draw_conditions, render_view
+from tests.conftest import real_data_subdir
 
 # (without numba the module calls OpenCV's own function: nothing to compare)
 pytestmark = pytest.mark.skipif(not HAVE_NUMBA, reason="numba not installed")
@@ -76,6 +78,35 @@ def test_the_detector_masks_of_rendered_views_give_opencvs_lines(
         view = render_view(draw_conditions(rng), rng)
         detect_target(view.image, view.spec)
     assert len(masks) >= 3
+    for mask, step, threshold in masks:
+        np.testing.assert_array_equal(
+            hough_lines(mask, step, threshold), _opencv(mask, step, threshold)
+        )
+
+
+def test_real_captures_masks_give_opencvs_lines(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A real lens and real noise: the masks of ../shared/data/real's chessboard images
+    (Zhang's, 640x480) and circle-grid images (1920x1080), where the detector refuses the
+    view (no concentric target there) after its Hough lines."""
+    masks: list[tuple[np.ndarray, float, int]] = []
+
+    def recording(mask: np.ndarray, step: float, threshold: int) -> np.ndarray:
+        masks.append((mask.copy(), step, threshold))
+        return hough_lines(mask, step, threshold)
+
+    monkeypatch.setattr(concentric_rays, "hough_lines", recording)
+    spec = ConcentricCirclesTarget(
+        ring_diameters_mm=(20.0, 40.0, 60.0, 80.0, 100.0, 120.0),
+        line_width_mm=0.6,
+        orientation_marker=OrientationMarker(diameter_mm=6.0, center_mm=(66.0, 0.0)),
+    )
+    frames = [real_data_subdir("zhang_msr") / "CalibIm1.png"]
+    frames += sorted((real_data_subdir("zhaocongyang_linelight") / "calib_picture").iterdir())[:1]
+    for path in frames:
+        image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        assert image is not None, path
+        detect_target(image, spec)
+    assert len(masks) >= 2 and all(np.count_nonzero(m) > 1000 for m, _, _ in masks)
     for mask, step, threshold in masks:
         np.testing.assert_array_equal(
             hough_lines(mask, step, threshold), _opencv(mask, step, threshold)
