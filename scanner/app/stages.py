@@ -160,10 +160,12 @@ def simulate(
     workers: int = 2,
     progress: bool = False,
     sweep_paths: Sequence[NDArray] | None = None,
+    check_cancelled: Callable[[], None] | None = None,
 ) -> CellTruth:
     """Capture sessions from the virtual cell into ``out_dir/<kind>/``, with their truth.
 
-    ``sweep_paths`` (flange poses of each planned sweep) replaces the cell's own sweep.
+    ``sweep_paths`` (flange poses of each planned sweep) replaces the cell's own sweep;
+    ``check_cancelled`` is called after each rendered frame (see ``simulate_cell``).
     """
     if seed < 0:
         raise ValueError(f"--seed: expected >= 0, got {seed}")
@@ -177,6 +179,7 @@ def simulate(
         workers=workers,
         progress=progress,
         sweep_paths=sweep_paths,
+        check_cancelled=check_cancelled,
     )
 
 

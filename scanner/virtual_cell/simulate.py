@@ -13,7 +13,7 @@ import io
 import logging
 import os
 import sys
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -265,12 +265,26 @@ def _render(job: _Job) -> tuple[str, int, NDArray, NDArray, NDArray, tuple[str, 
     return p.session, p.id, uv, sid, pts, ids
 
 
-def _run_jobs(jobs: list[_Job], workers: int) -> Iterator[tuple]:
+def _run_jobs(
+    jobs: list[_Job], workers: int, check_cancelled: Callable[[], None] | None = None
+) -> Iterator[tuple]:
+    """Each job's rendered frame, in order; ``check_cancelled`` is called before the first
+    and after each: what it raises stops the rendering (the pool's frames not yet started
+    are dropped; those it is rendering finish first)."""
+    check = check_cancelled or (lambda: None)
+    check()
     if workers <= 1 or len(jobs) < 4:
-        yield from map(_render, jobs)
+        for job in jobs:
+            yield _render(job)
+            check()
         return
-    with process_pool(workers) as pool:
-        yield from pool.map(_render, jobs, chunksize=4)
+    pool = process_pool(workers)
+    try:
+        for frame in pool.map(_render, jobs, chunksize=4):
+            yield frame
+            check()
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -357,6 +371,7 @@ def simulate_cell(
     progress: bool = False,
     fast_sweep: bool = True,
     sweep_paths: Sequence[NDArray] | None = None,
+    check_cancelled: Callable[[], None] | None = None,
 ) -> CellTruth:
     """Render the cell's calibration, check and sweep sessions and write the truth.
 
@@ -387,6 +402,10 @@ def simulate_cell(
     sweep_paths : sequence of ndarray, each shape (F_k, 4, 4), optional
         Commanded ``base_from_flange`` of each sweep (a planned scan): a multi-sweep session
         (its ``sweep`` column) instead of the cell's one linear sweep.
+    check_cancelled : callable, optional
+        Called before the first frame is rendered and after each: whatever it raises stops
+        the rendering and comes out of this function (a PLC job's cancellation). The frames
+        rendered so far stay in ``out_dir``, with no ``session.json`` beside them.
 
     Returns
     -------
@@ -409,7 +428,7 @@ def simulate_cell(
         disable=not progress,
     )
     with bar:
-        for name, fid, uv, sid, pts, ids in _run_jobs(jobs, workers):
+        for name, fid, uv, sid, pts, ids in _run_jobs(jobs, workers, check_cancelled):
             stripes[name].append((fid, uv, sid, pts, ids))
             bar.update(1)
 

@@ -214,6 +214,7 @@ class VirtualCellSource:
             sessions=(kind,),
             workers=self.workers,
             sweep_paths=sweep_paths,
+            check_cancelled=ctx.check_cancelled,
         )
         session = out / kind
         if not (session / "session.json").is_file():

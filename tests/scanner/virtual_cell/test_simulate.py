@@ -12,6 +12,7 @@ from scanner.core.targets import ChessboardTarget
 from scanner.formats.calibration_file import read_calibration
 from scanner.formats.session import read_session
 from scanner.virtual_cell.quick import quick_cell, quick_simulation
+from scanner.virtual_cell.simulate import simulate_cell
 from scanner.virtual_cell.truth import read_truth
 
 pytestmark = pytest.mark.slow  # one quick simulation for the module: about 15 s
@@ -107,3 +108,29 @@ def test_chessboard_override_at_the_same_poses(simulated, tmp_path):
     # The chessboard's frame is shifted so that its pattern is centred where O was.
     shift = np.asarray(b.extra["concentric_from_printed"])
     np.testing.assert_allclose(fb.cam_from_target_true, fa.cam_from_target_true @ shift, atol=1e-9)
+
+
+class _Cancelled(Exception):
+    pass
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_a_cancelled_simulation_stops_at_its_next_frame(tmp_path, workers):
+    """A PLC job's cancellation reaches the rendering: it stops after the frame it was
+    called after (a pool's frames not yet started are dropped), and no session is written."""
+    calls = []
+
+    def check() -> None:
+        calls.append(1)
+        if len(calls) == 3:  # before the first frame, after the first, after the second
+            raise _Cancelled
+
+    cell = quick_cell("paper", scale=4, sweep_frames=200)
+    with pytest.raises(_Cancelled):
+        simulate_cell(cell, tmp_path, sessions=("sweep",), workers=workers, check_cancelled=check)
+    assert len(calls) == 3
+    rendered = list((tmp_path / "sweep" / "images").glob("*.png"))
+    # (the pool renders ahead: chunks of 4 frames running or queued to its processes finish;
+    # 20 frames of the 200 here, unloaded)
+    assert 2 <= len(rendered) <= (2 if workers == 1 else 100)
+    assert not (tmp_path / "sweep" / "session.json").exists()

@@ -261,6 +261,30 @@ def test_a_scan_job_is_cancelled_inside_the_scan_stage(
     assert chunks_done == [0, 1, 2, 3]
 
 
+def test_a_virtual_cell_capture_is_cancelled_inside_the_rendering(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+):
+    """The virtual cell's capture gets the job's check: a thread-worker service's shutdown
+    stops the rendering at its next frame, not after the whole session."""
+    config = PlcConfig()
+    ctx = _ctx(tmp_path, config)
+    ctx.work_dir.mkdir()
+    frames_done = []
+
+    def simulate(cell: object, out: Path, **kwargs: object) -> None:
+        check = kwargs["check_cancelled"]
+        for frame in range(10):
+            frames_done.append(frame)
+            if frame == 2:
+                ctx.cancel.set()
+            check()  # type: ignore[operator]
+
+    monkeypatch.setattr(stages, "simulate", simulate)
+    with pytest.raises(JobCancelled):
+        VirtualCellSource().acquire("check", ctx)
+    assert frames_done == [0, 1, 2]
+
+
 def test_scan_job_with_a_nominal_inspects_the_cloud_against_it(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ):
