@@ -204,17 +204,28 @@ def _detect_one(args: tuple[str, TargetSpec]) -> TargetObservation:
 
 
 def _detect_all(
-    session: Session, frames: list[Frame], target: TargetSpec, workers: int
+    session: Session,
+    frames: list[Frame],
+    target: TargetSpec,
+    workers: int,
+    check_cancelled: Callable[[], None],
 ) -> Iterator[TargetObservation]:
-    """Detections of the frames' target images, in order (a process pool when workers > 1)."""
+    """Detections of the frames' target images, in order (a process pool when workers > 1);
+    ``check_cancelled`` after each: what it raises stops them (the pool's images not yet
+    started are dropped)."""
     jobs = [(str(f.target_image), target) for f in frames]
     if workers <= 1 or len(jobs) < 4:
         for job in jobs:
             yield _detect_one(job)
+            check_cancelled()
         return
-
-    with process_pool(workers) as pool:
-        yield from pool.map(_detect_one, jobs, chunksize=2)
+    pool = process_pool(workers)
+    try:
+        for obs in pool.map(_detect_one, jobs, chunksize=2):
+            yield obs
+            check_cancelled()
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _paper_plane_views(
@@ -251,6 +262,7 @@ def calibrate_session(
     on_stage: Callable[[str], None] | None = None,
     observations: dict[int, TargetObservation] | None = None,
     workers: int = 2,
+    check_cancelled: Callable[[], None] | None = None,
 ) -> CalibrationResult:
     """Calibrate intrinsics, light plane and hand-eye from one calibration session.
 
@@ -272,6 +284,10 @@ def calibrate_session(
         skip the detection stage.
     workers : int
         Processes detecting the target in parallel (1: in this process).
+    check_cancelled : callable, optional
+        Called as each stage starts, after each image's detection and each laser frame's
+        stripe: whatever it raises stops the calibration and comes out of this function (a
+        PLC job's cancellation).
 
     Returns
     -------
@@ -308,7 +324,13 @@ def calibrate_session(
             "method 'paper' needs laser images (its light plane and hand-eye follow the stripe); "
             "this session has none (the default method gives a camera-only calibration)"
         )
-    stage = on_stage or (lambda name: logger.info("stage: %s", name))
+    check = check_cancelled or (lambda: None)
+    announce = on_stage or (lambda name: logger.info("stage: %s", name))
+
+    def stage(name: str) -> None:
+        check()
+        announce(name)
+
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
 
@@ -322,7 +344,9 @@ def calibrate_session(
     found_now = dict(
         zip(
             [f.id for f in todo],
-            _progress(_detect_all(session, todo, target, workers), progress, "detect", len(todo)),
+            _progress(
+                _detect_all(session, todo, target, workers, check), progress, "detect", len(todo)
+            ),
         )
     )
     for f in with_target:
@@ -386,6 +410,7 @@ def calibrate_session(
     with_laser = [f for f in session.frames if f.laser_image is not None]
     for f in _progress(with_laser, progress, "stripes"):
         stripes[f.id] = _extract(session, f)
+        check()
     timings["stripes_s"] = time.perf_counter() - t1
 
     # 5. light plane (none from a session without laser images: a camera-only calibration)

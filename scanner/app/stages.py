@@ -342,6 +342,7 @@ def calibrate(
     laser_origin_strict: bool = True,
     progress: bool = False,
     on_stage: Callable[[str], None] | None = None,
+    check_cancelled: Callable[[], None] | None = None,
 ) -> CalibrateRun:
     """Calibrate from a ``calibration`` session and write the calibration file and its report.
 
@@ -359,6 +360,8 @@ def calibrate(
     laser_origin_strict : bool
         An origin off the new plane is an error (``True``, a user's input) or left out with a
         warning (``False``: the PLC carrying the installed calibration's origin over).
+    check_cancelled : callable, optional
+        Called between the calibration's stages and images (``calibrate_session``).
     """
     out = Path(out)
     _require_suffix(out, (".json",), "--out")
@@ -374,6 +377,7 @@ def calibrate(
         progress=progress,
         refine_intrinsics=refine_intrinsics,
         on_stage=on_stage,
+        check_cancelled=check_cancelled,
     )
     record = dict(result.calibration.quality.record)
     record["provenance"] = provenance("calibrate", {"session": Path(session_dir)})

@@ -10,13 +10,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from calibration import pipeline
 from calibration.pipeline import calibrate_session, stripe_pixel_at, target_extent_mm
 from scanner.core.conventions import angle_between_rotations_deg
 from scanner.core.planes import plane_errors
 from scanner.core.targets import ChessboardTarget, CircleGridTarget
 from scanner.formats.calibration_covariance import PARAMETERS, camera_correction, plane_correction
 from scanner.formats.calibration_file import read_calibration
-from scanner.formats.session import Frame, Session
+from scanner.formats.session import Frame, Session, read_session
+from scanner.virtual_cell.quick import quick_cell
+from scanner.virtual_cell.simulate import simulate_cell
+from scanner.virtual_cell.truth import read_truth
 from tests.conftest import REPO_ROOT, real_data_subdir
 
 
@@ -55,9 +59,6 @@ def test_target_extent_covers_the_printed_features():
 
 @pytest.fixture(scope="module")
 def modern_cell(tmp_path_factory):
-    from scanner.virtual_cell.simulate import simulate_cell
-    from scanner.virtual_cell.truth import read_truth
-
     # Rendering the cell takes minutes: SCANNER_TEST_MODERN_CELL may name a folder that
     # simulate_cell("modern", ..., seed=0) already wrote.
     cached = os.environ.get("SCANNER_TEST_MODERN_CELL")
@@ -70,7 +71,6 @@ def modern_cell(tmp_path_factory):
 
 @pytest.mark.slow
 def test_virtual_cell_default_calibration_matches_truth(modern_cell):
-    from scanner.formats.session import read_session
 
     out, truth = modern_cell
     res = calibrate_session(read_session(out / "calibration"), progress=False)
@@ -205,3 +205,39 @@ def test_linelight_plane_agrees_with_the_authors(monkeypatch):
     assert fig["cloud_rms_mm"] < 0.5
     assert fig["plane_rms_mm"] < 0.15
     assert fig["worst_frame_mean_mm"] < 0.08
+
+
+class _Cancelled(Exception):
+    pass
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("workers", [1, 2])
+def test_a_cancelled_calibration_stops_at_its_next_image(tmp_path, monkeypatch, workers):
+    """A PLC job's cancellation reaches the detection: checked as the stage starts and after
+    each image, it stops there (a pool's images not yet started are dropped)."""
+    cell = quick_cell("paper", scale=4, sweep_frames=3)
+    simulate_cell(cell, tmp_path, seed=1, sessions=("calibration",), workers=1)
+    session = read_session(tmp_path / "calibration")
+    assert sum(f.target_image is not None for f in session.frames) > 10
+    detected = []
+    real_detect = pipeline._detect_one
+
+    def counting(job):
+        detected.append(job)
+        return real_detect(job)
+
+    if workers == 1:  # (a pool's processes could not take the stand-in)
+        monkeypatch.setattr(pipeline, "_detect_one", counting)
+    calls = []
+
+    def check() -> None:
+        calls.append(1)
+        if len(calls) == 4:  # the stage's start, then after three images
+            raise _Cancelled
+
+    with pytest.raises(_Cancelled):
+        calibrate_session(session, progress=False, workers=workers, check_cancelled=check)
+    assert len(calls) == 4
+    if workers == 1:
+        assert len(detected) == 3

@@ -474,6 +474,7 @@ class PipelineJobs:
             job.calibration,
             laser_origin_cam_mm=self._current_laser_origin(),
             laser_origin_strict=False,
+            check_cancelled=ctx.check_cancelled,
         )
         ctx.check_cancelled()
         passed, reason, plane_um = calibration_gate(run.quality, self.config.calibration_gate)

@@ -261,6 +261,35 @@ def test_a_scan_job_is_cancelled_inside_the_scan_stage(
     assert chunks_done == [0, 1, 2, 3]
 
 
+def test_a_calibration_job_is_cancelled_inside_the_calibration(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+):
+    """The calibrate stage gets the job's check: a cancelled calibration stops at its next
+    image and installs nothing."""
+    current = tmp_path / "cal" / "calibration.json"
+    current.parent.mkdir()
+    current.write_text("old", "utf-8")
+    _session(tmp_path / "drop", "s1", "calibration", 1000.0)
+    config = PlcConfig(storage=StorageConfig(calibration=str(current)))
+    ctx = _ctx(tmp_path, config)
+    ctx.work_dir.mkdir()
+    images_done = []
+
+    def calibrate(session: Path, out: Path, **kwargs: object) -> None:
+        check = kwargs["check_cancelled"]
+        for image in range(10):
+            images_done.append(image)
+            if image == 4:
+                ctx.cancel.set()
+            check()  # type: ignore[operator]
+
+    monkeypatch.setattr(stages, "calibrate", calibrate)
+    with pytest.raises(JobCancelled):
+        PipelineJobs(config, source=FolderSource(tmp_path / "drop")).full_calibration(ctx)
+    assert images_done == [0, 1, 2, 3, 4]
+    assert current.read_text("utf-8") == "old"
+
+
 def test_a_virtual_cell_capture_is_cancelled_inside_the_rendering(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ):
