@@ -49,7 +49,7 @@ from calibration.light_plane import (
 from calibration.symmetry import relabel, resolve_quarter_turns, turn
 from scanner.core.camera import CameraModel, intersect_rays_with_plane
 from scanner.core.images import load_gray_image
-from scanner.core.parallel import process_pool
+from scanner.core.parallel import process_map
 from scanner.core.targets import ChessboardTarget, ConcentricCirclesTarget, TargetSpec
 from scanner.formats.calibration_file import Calibration, CalibrationQuality, LightPlane
 from scanner.formats.session import Frame, Session
@@ -211,21 +211,9 @@ def _detect_all(
     check_cancelled: Callable[[], None],
 ) -> Iterator[TargetObservation]:
     """Detections of the frames' target images, in order (a process pool when workers > 1);
-    ``check_cancelled`` after each: what it raises stops them (the pool's images not yet
-    started are dropped)."""
+    ``check_cancelled`` after each (:func:`~scanner.core.parallel.process_map`)."""
     jobs = [(str(f.target_image), target) for f in frames]
-    if workers <= 1 or len(jobs) < 4:
-        for job in jobs:
-            yield _detect_one(job)
-            check_cancelled()
-        return
-    pool = process_pool(workers)
-    try:
-        for obs in pool.map(_detect_one, jobs, chunksize=2):
-            yield obs
-            check_cancelled()
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)
+    return process_map(_detect_one, jobs, workers, chunksize=2, check_cancelled=check_cancelled)
 
 
 def _paper_plane_views(

@@ -19,11 +19,16 @@ import multiprocessing
 import os
 import threading
 import time
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Executor, ProcessPoolExecutor, ThreadPoolExecutor
+from typing import TypeVar
 
 import cv2
 
-__all__ = ["process_pool", "thread_pool"]
+__all__ = ["process_map", "process_pool", "thread_pool"]
+
+T = TypeVar("T")
+R = TypeVar("R")
 
 log = logging.getLogger(__name__)
 
@@ -80,3 +85,47 @@ def thread_pool(workers: int) -> Executor:
     if workers < 1:
         raise ValueError(f"workers: expected >= 1, got {workers}")
     return ThreadPoolExecutor(max_workers=workers, thread_name_prefix="scanner-worker")
+
+
+def process_map(
+    func: Callable[[T], R],
+    items: Iterable[T],
+    workers: int,
+    chunksize: int = 1,
+    check_cancelled: Callable[[], None] | None = None,
+) -> Iterator[R]:
+    """``func`` of each item, in order: on a :func:`process_pool` of ``workers``, or in this
+    process where ``workers`` is 1 or the items are fewer than 4 (a pool's start would cost
+    more than it saves).
+
+    ``check_cancelled`` is called before the first item and after each result: what it
+    raises comes out of the iteration. Then, as when the caller stops iterating or an item
+    raises, the pool drops the items not yet started and waits for those it is running (a
+    pool renders or detects a few chunks ahead of the results taken).
+
+    Parameters
+    ----------
+    func : callable
+        A module-level function (a pool's processes import it by name).
+    items : iterable
+    workers : int
+        At least 1.
+    chunksize : int
+        Items sent to a pool's process at a time.
+    check_cancelled : callable, optional
+    """
+    check = check_cancelled or (lambda: None)
+    jobs = list(items)
+    check()
+    if workers <= 1 or len(jobs) < 4:
+        for job in jobs:
+            yield func(job)
+            check()
+        return
+    pool = process_pool(workers)
+    try:
+        for result in pool.map(func, jobs, chunksize=chunksize):
+            yield result
+            check()
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)

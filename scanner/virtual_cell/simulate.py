@@ -24,7 +24,7 @@ from tqdm import tqdm
 
 from scanner.core.conventions import invert_transform, make_transform
 from scanner.core.fileio import write_json_atomic, write_text_atomic
-from scanner.core.parallel import process_pool
+from scanner.core.parallel import process_map
 from scanner.core.targets import ConcentricCirclesTarget, TargetSpec
 from scanner.formats.calibration_file import LightPlane, write_calibration
 from scanner.formats.session import Frame, write_session
@@ -268,23 +268,9 @@ def _render(job: _Job) -> tuple[str, int, NDArray, NDArray, NDArray, tuple[str, 
 def _run_jobs(
     jobs: list[_Job], workers: int, check_cancelled: Callable[[], None] | None = None
 ) -> Iterator[tuple]:
-    """Each job's rendered frame, in order; ``check_cancelled`` is called before the first
-    and after each: what it raises stops the rendering (the pool's frames not yet started
-    are dropped; those it is rendering finish first)."""
-    check = check_cancelled or (lambda: None)
-    check()
-    if workers <= 1 or len(jobs) < 4:
-        for job in jobs:
-            yield _render(job)
-            check()
-        return
-    pool = process_pool(workers)
-    try:
-        for frame in pool.map(_render, jobs, chunksize=4):
-            yield frame
-            check()
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)
+    """Each job's rendered frame, in order; ``check_cancelled`` before the first and after
+    each (:func:`~scanner.core.parallel.process_map`)."""
+    return process_map(_render, jobs, workers, chunksize=4, check_cancelled=check_cancelled)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -233,11 +233,11 @@ def test_a_cancelled_calibration_stops_at_its_next_image(tmp_path, monkeypatch, 
 
     def check() -> None:
         calls.append(1)
-        if len(calls) == 4:  # the stage's start, then after three images
+        if len(calls) == 5:  # the stage's start, before the first image, after three
             raise _Cancelled
 
     with pytest.raises(_Cancelled):
         calibrate_session(session, progress=False, workers=workers, check_cancelled=check)
-    assert len(calls) == 4
+    assert len(calls) == 5
     if workers == 1:
         assert len(detected) == 3

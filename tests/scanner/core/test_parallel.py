@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import threading
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from scanner.core.parallel import thread_pool
+from scanner.core.parallel import process_map, thread_pool
 from scanner.stripe.extract import extract_stripe
 from scanner.virtual_cell.analytic import StripeSegment, render_stripes
 
@@ -40,3 +42,43 @@ def test_stripes_extracted_on_threads_equal_those_of_one_thread():
     for a, b in zip(alone, pooled, strict=True):
         np.testing.assert_array_equal(a.u, b.u)
         np.testing.assert_array_equal(a.flags, b.flags)
+
+
+def _touch_and_square(item: tuple[Path, int]) -> int:
+    """(module level: a pool's processes import it) Leaves a file saying it ran."""
+    folder, x = item
+    (folder / f"{x}.done").touch()
+    time.sleep(0.01)
+    return x * x
+
+
+class _Cancelled(Exception):
+    pass
+
+
+@pytest.mark.parametrize(("workers", "count"), [(1, 10), (2, 3), (2, 10)])
+def test_process_map_gives_the_results_in_order(tmp_path: Path, workers: int, count: int):
+    items = [(tmp_path, x) for x in range(count)]
+    assert list(process_map(_touch_and_square, items, workers, chunksize=2)) == [
+        x * x for x in range(count)
+    ]
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_a_cancelled_process_map_stops_and_drops_what_has_not_started(tmp_path: Path, workers: int):
+    calls = []
+
+    def check() -> None:
+        calls.append(1)
+        if len(calls) == 3:  # before the first item, after the first, after the second
+            raise _Cancelled
+
+    items = [(tmp_path, x) for x in range(300)]
+    results = []
+    with pytest.raises(_Cancelled):
+        for r in process_map(_touch_and_square, items, workers, chunksize=2, check_cancelled=check):
+            results.append(r)
+    assert results == [0, 1] and len(calls) == 3
+    started = len(list(tmp_path.glob("*.done")))
+    # (a pool runs a few chunks ahead of the results taken; the rest were dropped)
+    assert 2 <= started <= (2 if workers == 1 else 150)
