@@ -5,6 +5,8 @@ rendering). They are started with ``spawn``, never ``fork``: OpenCV, OpenBLAS an
 thread pools whose locks a forked child inherits in whatever state the parent left them, and a
 child that then touches them (``cv2.setNumThreads``, a BLAS call) can wait forever. Spawned
 workers cost an interpreter start and the imports (about a second) once per pool, not per task.
+:func:`process_map` runs a function over items on such a pool, in order, and stops at a
+caller's cancellation (a PLC job's) with the pool's unstarted items dropped.
 
 Threads (:func:`thread_pool`) for the stages whose heavy steps release the GIL: the scan's
 stripe extraction decodes frames in OpenCV and measures them in compiled kernels that run
