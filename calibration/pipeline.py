@@ -20,6 +20,7 @@ import csv
 import logging
 import time
 from collections.abc import Callable, Iterator
+from contextlib import closing
 from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
@@ -329,14 +330,10 @@ def calibrate_session(
     rejected: list[Rejection] = []
     with_target = [f for f in session.frames if f.target_image is not None]
     todo = [f for f in with_target if f.id not in given]
-    found_now = dict(
-        zip(
-            [f.id for f in todo],
-            _progress(
-                _detect_all(session, todo, target, workers, check), progress, "detect", len(todo)
-            ),
+    with closing(_detect_all(session, todo, target, workers, check)) as detections:
+        found_now = dict(
+            zip([f.id for f in todo], _progress(detections, progress, "detect", len(todo)))
         )
-    )
     for f in with_target:
         # A given observation may be a falsy "not found": never fall through on it.
         obs = given[f.id] if f.id in given else found_now[f.id]

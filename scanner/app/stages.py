@@ -165,7 +165,7 @@ def simulate(
     """Capture sessions from the virtual cell into ``out_dir/<kind>/``, with their truth.
 
     ``sweep_paths`` (flange poses of each planned sweep) replaces the cell's own sweep;
-    ``check_cancelled`` is called after each rendered frame (see ``simulate_cell``).
+    ``check_cancelled`` is called before the first frame and after each (``simulate_cell``).
     """
     if seed < 0:
         raise ValueError(f"--seed: expected >= 0, got {seed}")

@@ -101,32 +101,43 @@ def process_map(
     more than it saves).
 
     ``check_cancelled`` is called before the first item and after each result: what it
-    raises comes out of the iteration. Then, as when the caller stops iterating or an item
-    raises, the pool drops the items not yet started and waits for those it is running (a
-    pool renders or detects a few chunks ahead of the results taken).
+    raises comes out of the iteration. Then, as when the caller stops iterating (close the
+    iterator, e.g. with :func:`contextlib.closing`, rather than leave it to the garbage
+    collector) or an item raises, the pool drops the items not yet started and waits for
+    those its processes hold: with ``check_cancelled`` they are sent one at a time (not in
+    chunks), so that is at most a few items.
 
     Parameters
     ----------
     func : callable
         A module-level function (a pool's processes import it by name).
     items : iterable
+        Its arguments, one per call.
     workers : int
         At least 1.
     chunksize : int
-        Items sent to a pool's process at a time.
+        Items sent to a pool's process at a time, without ``check_cancelled``.
     check_cancelled : callable, optional
+        Raises to stop (a PLC job's cancellation).
+
+    Yields
+    ------
+    The results, in the order of ``items``.
     """
+    if workers < 1:
+        raise ValueError(f"workers: expected >= 1, got {workers}")
     check = check_cancelled or (lambda: None)
     jobs = list(items)
     check()
-    if workers <= 1 or len(jobs) < 4:
+    if workers == 1 or len(jobs) < 4:
         for job in jobs:
             yield func(job)
             check()
         return
     pool = process_pool(workers)
     try:
-        for result in pool.map(func, jobs, chunksize=chunksize):
+        size = chunksize if check_cancelled is None else 1
+        for result in pool.map(func, jobs, chunksize=size):
             yield result
             check()
     finally:

@@ -14,6 +14,7 @@ import logging
 import os
 import sys
 from collections.abc import Callable, Iterator, Sequence
+from contextlib import closing
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -413,8 +414,8 @@ def simulate_cell(
         file=sys.stderr,
         disable=not progress,
     )
-    with bar:
-        for name, fid, uv, sid, pts, ids in _run_jobs(jobs, workers, check_cancelled):
+    with bar, closing(_run_jobs(jobs, workers, check_cancelled)) as rendered:
+        for name, fid, uv, sid, pts, ids in rendered:
             stripes[name].append((fid, uv, sid, pts, ids))
             bar.update(1)
 
