@@ -205,7 +205,6 @@ def _detect_one(args: tuple[str, TargetSpec]) -> TargetObservation:
 
 
 def _detect_all(
-    session: Session,
     frames: list[Frame],
     target: TargetSpec,
     workers: int,
@@ -330,7 +329,7 @@ def calibrate_session(
     rejected: list[Rejection] = []
     with_target = [f for f in session.frames if f.target_image is not None]
     todo = [f for f in with_target if f.id not in given]
-    with closing(_detect_all(session, todo, target, workers, check)) as detections:
+    with closing(_detect_all(todo, target, workers, check)) as detections:
         found_now = dict(
             zip([f.id for f in todo], _progress(detections, progress, "detect", len(todo)))
         )

@@ -236,6 +236,22 @@ def test_scan_job_reports_the_plans_first_figures_in_micrometres(
     assert outcome.report_path is not None and outcome.report_path.is_file()
 
 
+def _cancelling_stage(ctx: JobContext, cancel_at: int, done: list[int]):
+    """A stand-in stage that runs 10 steps (chunks, images, frames), records each in
+    ``done``, has the service cancel the job at step ``cancel_at`` and calls the check the
+    job gave it after every step."""
+
+    def stage(*_: object, **kwargs: object) -> None:
+        check = kwargs["check_cancelled"]
+        for step in range(10):
+            done.append(step)
+            if step == cancel_at:
+                ctx.cancel.set()  # the service cancels while the stage runs
+            check()  # type: ignore[operator]
+
+    return stage
+
+
 def test_a_scan_job_is_cancelled_inside_the_scan_stage(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ):
@@ -245,17 +261,8 @@ def test_a_scan_job_is_cancelled_inside_the_scan_stage(
     config = _scan_recipe_config(tmp_path)
     ctx = _ctx(tmp_path, config, parameter=3)
     ctx.work_dir.mkdir()
-    chunks_done = []
-
-    def scan(sessions: list[Path], calibration: Path, out: Path, **kwargs: object) -> None:
-        check = kwargs["check_cancelled"]
-        for chunk in range(10):
-            chunks_done.append(chunk)
-            if chunk == 3:
-                ctx.cancel.set()  # the service cancels while the stage runs
-            check()  # type: ignore[operator]
-
-    monkeypatch.setattr(stages, "scan", scan)
+    chunks_done: list[int] = []
+    monkeypatch.setattr(stages, "scan", _cancelling_stage(ctx, 3, chunks_done))
     with pytest.raises(JobCancelled):
         PipelineJobs(config, source=FolderSource(tmp_path / "drop")).scan(ctx)
     assert chunks_done == [0, 1, 2, 3]
@@ -273,17 +280,8 @@ def test_a_calibration_job_is_cancelled_inside_the_calibration(
     config = PlcConfig(storage=StorageConfig(calibration=str(current)))
     ctx = _ctx(tmp_path, config)
     ctx.work_dir.mkdir()
-    images_done = []
-
-    def calibrate(session: Path, out: Path, **kwargs: object) -> None:
-        check = kwargs["check_cancelled"]
-        for image in range(10):
-            images_done.append(image)
-            if image == 4:
-                ctx.cancel.set()
-            check()  # type: ignore[operator]
-
-    monkeypatch.setattr(stages, "calibrate", calibrate)
+    images_done: list[int] = []
+    monkeypatch.setattr(stages, "calibrate", _cancelling_stage(ctx, 4, images_done))
     with pytest.raises(JobCancelled):
         PipelineJobs(config, source=FolderSource(tmp_path / "drop")).full_calibration(ctx)
     assert images_done == [0, 1, 2, 3, 4]
@@ -298,17 +296,8 @@ def test_a_virtual_cell_capture_is_cancelled_inside_the_rendering(
     config = PlcConfig()
     ctx = _ctx(tmp_path, config)
     ctx.work_dir.mkdir()
-    frames_done = []
-
-    def simulate(cell: object, out: Path, **kwargs: object) -> None:
-        check = kwargs["check_cancelled"]
-        for frame in range(10):
-            frames_done.append(frame)
-            if frame == 2:
-                ctx.cancel.set()
-            check()  # type: ignore[operator]
-
-    monkeypatch.setattr(stages, "simulate", simulate)
+    frames_done: list[int] = []
+    monkeypatch.setattr(stages, "simulate", _cancelling_stage(ctx, 2, frames_done))
     with pytest.raises(JobCancelled):
         VirtualCellSource().acquire("check", ctx)
     assert frames_done == [0, 1, 2]
