@@ -13,6 +13,7 @@ from calibration.detection.concentric_axes import (
     _line_shift_px,
     _lines_angle_deg,
     _normal_clear_of,
+    conjugacy_deg,
     conjugate_diameter,
 )
 from calibration.detection.concentric_rings import _pencil_centre
@@ -130,6 +131,34 @@ def test_the_conjugate_diameter_is_the_image_of_the_perpendicular_one() -> None:
         got = conjugate_diameter(line, o, conics)
         assert _lines_angle_deg(got, truth) < 1e-6
         assert abs(float(got @ [o[0], o[1], 1.0])) < 1e-9
+
+
+def test_conjugacy_is_zero_for_the_diameters_and_large_for_another_line_through_o() -> None:
+    # Random homographies as above: the images of two perpendicular diameters are conjugate
+    # (0 deg); a line through O turned 20-70 deg on the target from the second diameter is
+    # not, and the larger the turn the further off.
+    rng = np.random.default_rng(22)
+    for _ in range(20):
+        H = np.array([[900.0, 0, 320], [0, 900.0, 240], [0, 0, 1]]) @ np.column_stack(
+            [*cv2.Rodrigues(rng.uniform(-0.6, 0.6, 3))[0][:, :2].T, [0.0, 0.0, 600.0]]
+        )
+        Hinv = np.linalg.inv(H)
+        conics = {k: Hinv.T @ np.diag([1.0, 1.0, -r * r]) @ Hinv for k, r in enumerate((30, 60))}
+        o = H @ np.array([0.0, 0.0, 1.0])
+        o = o[:2] / o[2]
+        a = rng.uniform(0, np.pi)
+
+        def diameter(angle: float, Hinv: np.ndarray = Hinv) -> np.ndarray:
+            return Hinv.T @ np.array([-np.sin(angle), np.cos(angle), 0.0])
+
+        true_pair = [diameter(a), diameter(a + np.pi / 2)]
+        assert conjugacy_deg(true_pair, o, conics) < 1e-6
+        offs = [
+            conjugacy_deg([diameter(a), diameter(a + np.radians(90 - t))], o, conics)
+            for t in (20, 45, 70)
+        ]
+        assert offs[0] > 5.0
+        assert offs[0] < offs[1] < offs[2]
 
 
 def test_a_diameter_under_a_laser_stripe_is_the_printed_ones_conjugate() -> None:
