@@ -23,6 +23,7 @@ The paper's method is in :mod:`calibration.intrinsics_paper`, the adjustment in
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -177,6 +178,7 @@ def calibrate_intrinsics(
     max_points_per_ring: int = 200,
     fixed: tuple[str, ...] = (),
     distortion: str = "auto",
+    check_cancelled: Callable[[], None] | None = None,
 ) -> IntrinsicsResult:
     """Calibrate the camera from observations of a planar target.
 
@@ -205,6 +207,9 @@ def calibrate_intrinsics(
         (:func:`calibration.intrinsics_model.select_distortion_model`) unless ``fixed`` names
         some; or a key of ``DISTORTION_MODELS`` (``"none"``, ``"k1"``, ``"k1k2"``,
         ``"k1k2p1p2"``, ``"full"``).
+    check_cancelled : callable, optional
+        Called before each fold of the distortion model's choice and before the chosen
+        model's fit: whatever it raises stops the calibration and comes out of this function.
 
     Returns
     -------
@@ -324,7 +329,11 @@ def calibrate_intrinsics(
     selection = None
     if auto:
         poses = x[9:].reshape(-1, 6)
-        selection = select_distortion_model(obs, camera_matrix(x), poses)
+        selection = select_distortion_model(
+            obs, camera_matrix(x), poses, check_cancelled=check_cancelled
+        )
+        if check_cancelled is not None:
+            check_cancelled()
         model = selection.chosen
         fixed = DISTORTION_MODELS[model]
         dist1 = x[4:9].copy()

@@ -22,6 +22,7 @@ views are needed.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -127,6 +128,7 @@ def select_distortion_model(
     folds: int = 3,
     max_points_per_ring: int = 60,
     image_size: tuple[int, int] | None = None,
+    check_cancelled: Callable[[], None] | None = None,
 ) -> ModelSelection:
     """Choose the distortion terms by their error on held-out views.
 
@@ -147,6 +149,9 @@ def select_distortion_model(
         the comparison needs no more; the uncertainties compared are all scaled alike).
     image_size : tuple of int, optional
         ``(width, height)``; by default the first observation's.
+    check_cancelled : callable, optional
+        Called before each fold's fit (every candidate's folds): whatever it raises stops the
+        choice and comes out of this function (a PLC job's cancellation), within one fold.
 
     Returns
     -------
@@ -158,6 +163,7 @@ def select_distortion_model(
     k = _folds(n, folds)
     if k < 2:
         return ModelSelection("k1", (), 0, f"{n} views: too few to hold any out; k1 only")
+    check = check_cancelled or (lambda: None)
     fold_of = np.arange(n) % k
     size = image_size or tuple(observations[0].image_size)
     # Every fit starts from one adjustment of all views with every term: the views' poses
@@ -173,6 +179,7 @@ def select_distortion_model(
         per_view = np.full(n, np.nan)
         fit_rms, sigma_ms = [], []
         for f in range(k):
+            check()
             train = np.flatnonzero(fold_of != f)
             test = np.flatnonzero(fold_of == f)
             x, res, prob, _ = _adjust(

@@ -136,3 +136,29 @@ def test_zhang_published_result_from_given_corners():
     assert res.cy == pytest.approx(206.585, abs=1.0)
     assert res.dist[0] == pytest.approx(-0.228601, abs=0.005)
     assert res.dist[1] == pytest.approx(0.190353, abs=0.02)
+
+
+class _Cancelled(Exception):
+    pass
+
+
+@pytest.mark.parametrize(
+    "cancel_at",
+    [
+        2,  # in the distortion model's choice, before its second fold
+        3 * 5 + 1,  # after its 3 folds of 5 candidates, before the chosen model's fit
+    ],
+)
+def test_a_cancelled_intrinsics_calibration_stops_in_or_after_the_model_choice(cancel_at: int):
+    rng = np.random.default_rng(0)
+    obs = [synthetic_observation(T, K_TRUE, np.zeros(5), rng, 0.1) for T in poses(8, rng)]
+    calls = []
+
+    def check() -> None:
+        calls.append(1)
+        if len(calls) == cancel_at:
+            raise _Cancelled
+
+    with pytest.raises(_Cancelled):
+        calibrate_intrinsics(obs, SIZE, check_cancelled=check)
+    assert len(calls) == cancel_at

@@ -122,3 +122,58 @@ def test_uncertainty_map_grows_where_no_view_looked() -> None:
 def test_an_unknown_distortion_model_is_refused() -> None:
     with pytest.raises(ValueError, match="distortion: expected 'auto' or one of none"):
         calibrate_intrinsics([], SIZE, distortion="k9")
+
+
+class _Cancelled(Exception):
+    pass
+
+
+def _views_and_start(n: int, seed: int) -> tuple[list, np.ndarray]:
+    """``n`` views of a distortion-free lens and their true poses (rotation vector, mm)."""
+    rng = np.random.default_rng(seed)
+    truth = poses(n, rng)
+    obs = [synthetic_observation(T, K_TRUE, np.zeros(5), rng, 0.1) for T in truth]
+    start = np.array([np.r_[Rotation.from_matrix(T[:3, :3]).as_rotvec(), T[:3, 3]] for T in truth])
+    return obs, start
+
+
+def test_a_cancelled_model_choice_stops_within_one_fold(monkeypatch) -> None:
+    """The check runs before each fold: what it raises comes out part-way through the
+    candidates, without the folds still to come."""
+    obs, start = _views_and_start(8, seed=0)
+    fits = []
+    real_adjust = intrinsics_model._adjust
+
+    def counting(*args, **kwargs):
+        fits.append(1)
+        return real_adjust(*args, **kwargs)
+
+    monkeypatch.setattr(intrinsics_model, "_adjust", counting)
+    calls = []
+
+    def check() -> None:
+        calls.append(1)
+        if len(calls) == 4:  # before the fourth fold (the first of the second candidate)
+            raise _Cancelled
+
+    with pytest.raises(_Cancelled):
+        intrinsics_model.select_distortion_model(obs, K_TRUE, start, check_cancelled=check)
+    assert len(calls) == 4
+    # The start's fit of all views, then three folds of two fits each (the fold's own and its
+    # held-out poses'), of the 1 + 2 * 3 * 5 the whole choice makes.
+    assert len(fits) == 1 + 2 * 3
+    assert len(fits) < 1 + 2 * 3 * len(intrinsics_model.DISTORTION_MODELS)
+
+
+def test_the_cancellation_check_changes_nothing_in_the_model_choice() -> None:
+    obs, start = _views_and_start(8, seed=0)
+    candidates = ("none", "full")  # the two ends (all five would double the time)
+    calls = []
+    plain = intrinsics_model.select_distortion_model(obs, K_TRUE, start, candidates=candidates)
+    checked = intrinsics_model.select_distortion_model(
+        obs, K_TRUE, start, candidates=candidates, check_cancelled=lambda: calls.append(1)
+    )
+    assert len(calls) == plain.folds * len(candidates)
+    assert checked.to_json() == plain.to_json()  # to the bit
+    for a, b in zip(plain.scores, checked.scores):
+        assert np.array_equal(a.per_view_px, b.per_view_px)
