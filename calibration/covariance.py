@@ -21,7 +21,7 @@ The robot's repeatability is the hand-eye adjustment's own estimate. The result 
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 
 import numpy as np
@@ -91,6 +91,8 @@ def estimate_covariance(
     plane: LightPlaneResult | None,
     posed_views: Sequence[PosedView],
     hand_eye: HandEyeResult,
+    *,
+    check_cancelled: Callable[[], None] | None = None,
 ) -> CalibrationCovariance:
     """The calibration's covariance over the corrections of
     :data:`~scanner.formats.calibration_covariance.PARAMETERS`.
@@ -111,11 +113,16 @@ def estimate_covariance(
         The hand-eye's views.
     hand_eye : HandEyeResult
         The hand-eye solved from them (its robot repeatability is used).
+    check_cancelled : callable, optional
+        Called before each re-solve (each intrinsics direction, each jackknife group):
+        whatever it raises stops the estimate and comes out of this function (a PLC job's
+        cancellation), within one re-solve.
 
     Returns
     -------
     CalibrationCovariance
     """
+    check = check_cancelled or (lambda: None)
     f0 = np.asarray(hand_eye.flange_from_cam, dtype=np.float64)
     p0 = None if plane is None or not plane else plane.plane
     poses0 = {v.frame_id: v.cam_from_target for v in laser_views}
@@ -162,6 +169,7 @@ def estimate_covariance(
         base = solve(camera, *reposed(camera))
         columns = []
         for s in dirs:
+            check()
             cam = CameraModel(
                 camera.width,
                 camera.height,
@@ -179,6 +187,7 @@ def estimate_covariance(
     if p0 is not None and len(laser_views) >= 3:
         est = []
         for g in _groups(len(laser_views)):
+            check()
             keep_views = [lv for i, lv in enumerate(laser_views) if i not in set(g.tolist())]
             pl = calibrate_light_plane(keep_views, camera)
             if pl:
@@ -191,6 +200,7 @@ def estimate_covariance(
     if len(posed_views) >= 6:
         est = []
         for g in _groups(len(posed_views)):
+            check()
             drop = set(g.tolist())
             he = calibrate_hand_eye(
                 [pv for i, pv in enumerate(posed_views) if i not in drop], camera, "default"
