@@ -274,8 +274,9 @@ def calibrate_session(
         Processes detecting the target in parallel (1: in this process).
     check_cancelled : callable, optional
         Called as each stage starts, after each image's detection and each laser frame's
-        stripe: whatever it raises stops the calibration and comes out of this function (a
-        PLC job's cancellation).
+        stripe, before each fold of the intrinsics' distortion-model choice and each re-solve
+        of the uncertainty: whatever it raises stops the calibration and comes out of this
+        function (a PLC job's cancellation).
 
     Returns
     -------
@@ -353,6 +354,7 @@ def calibrate_session(
         (session.width, session.height),
         method=method,
         target=target,
+        check_cancelled=check_cancelled,
     )
     for idx, why in intr.rejected:
         rejected.append(Rejection(found[idx].id, "intrinsics", why))
@@ -551,6 +553,7 @@ def calibrate_session(
                 plane_res,
                 views,
                 he,
+                check_cancelled=check_cancelled,
             )
         except (ValueError, np.linalg.LinAlgError) as exc:
             # optional: the calibration stands without it, and says so

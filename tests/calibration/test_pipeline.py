@@ -10,9 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calibration import pipeline
+from calibration import intrinsics, pipeline
+from calibration.detection.detect import detect_target
 from calibration.pipeline import calibrate_session, stripe_pixel_at, target_extent_mm
 from scanner.core.conventions import angle_between_rotations_deg
+from scanner.core.images import load_gray_image
 from scanner.core.planes import plane_errors
 from scanner.core.targets import ChessboardTarget, CircleGridTarget
 from scanner.formats.calibration_covariance import PARAMETERS, camera_correction, plane_correction
@@ -211,14 +213,21 @@ class _Cancelled(Exception):
     pass
 
 
+@pytest.fixture(scope="module")
+def quick_paper_session(tmp_path_factory) -> Session:
+    """A small paper cell's calibration session (11 target images, seconds to render)."""
+    out = tmp_path_factory.mktemp("quick-paper")
+    cell = quick_cell("paper", scale=4, sweep_frames=3)
+    simulate_cell(cell, out, seed=1, sessions=("calibration",), workers=1)
+    return read_session(out / "calibration")
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("workers", [1, 2])
-def test_a_cancelled_calibration_stops_at_its_next_image(tmp_path, monkeypatch, workers):
+def test_a_cancelled_calibration_stops_at_its_next_image(quick_paper_session, monkeypatch, workers):
     """A PLC job's cancellation reaches the detection: checked as the stage starts and after
     each image, it stops there (a pool's images not yet started are dropped)."""
-    cell = quick_cell("paper", scale=4, sweep_frames=3)
-    simulate_cell(cell, tmp_path, seed=1, sessions=("calibration",), workers=1)
-    session = read_session(tmp_path / "calibration")
+    session = quick_paper_session
     assert sum(f.target_image is not None for f in session.frames) > 10
     detected = []
     real_detect = pipeline._detect_one
@@ -241,3 +250,52 @@ def test_a_cancelled_calibration_stops_at_its_next_image(tmp_path, monkeypatch, 
     assert len(calls) == 5
     if workers == 1:
         assert len(detected) == 3
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    ("module", "name", "stage"),
+    [
+        (intrinsics, "select_distortion_model", "intrinsics"),
+        (pipeline, "estimate_covariance", "uncertainty"),
+    ],
+)
+def test_a_cancelled_calibration_stops_inside_its_long_fits(
+    quick_paper_session, monkeypatch, module, name, stage
+):
+    """The intrinsics' distortion-model choice and the uncertainty's re-solves (tens of
+    seconds on a real session) check between their fits: a cancellation there stops the
+    calibration at the next one and comes out of it (not taken for a failed estimate)."""
+    session = quick_paper_session
+    observations = {
+        f.id: detect_target(load_gray_image(f.target_image), session.target)
+        for f in session.frames
+        if f.target_image is not None
+    }
+    entered = []
+    real = getattr(module, name)
+
+    def spy(*args, **kwargs):
+        entered.append(name)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(module, name, spy)
+    checks_inside = []
+
+    def check() -> None:
+        if entered:
+            checks_inside.append(1)
+            if len(checks_inside) == 2:  # before its second fit
+                raise _Cancelled
+
+    announced: list[str] = []
+    with pytest.raises(_Cancelled):
+        calibrate_session(
+            session,
+            progress=False,
+            on_stage=announced.append,
+            observations=observations,
+            check_cancelled=check,
+        )
+    assert announced[-1] == stage
+    assert len(checks_inside) == 2
