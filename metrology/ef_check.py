@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -469,6 +470,7 @@ def run_ef_check(
     mode: str = "precise",
     calibration_source: str = "",
     tolerances: EFTolerances | None = None,
+    check_cancelled: Callable[[], None] | None = None,
 ) -> EFCheckResult:
     """Run the EF check on a ``check`` session with a calibration; write nothing.
 
@@ -485,6 +487,9 @@ def run_ef_check(
         Where the calibration came from (its file), recorded in the result.
     tolerances : EFTolerances, optional
         What the verdict judges against (default :class:`EFTolerances`).
+    check_cancelled : callable, optional
+        Called after each laser frame's measurement: whatever it raises stops the check and
+        comes out of this function (a PLC job's cancellation).
 
     Raises
     ------
@@ -503,7 +508,11 @@ def run_ef_check(
     iterator: Any = frames
     if progress:
         iterator = tqdm(frames, desc="EF check", unit="img", leave=False)
-    measurements = [check_frame(session, f, calibration, mode) for f in iterator]
+    measurements = []
+    for f in iterator:
+        measurements.append(check_frame(session, f, calibration, mode))
+        if check_cancelled is not None:
+            check_cancelled()
     o_positions = np.array(
         [m.o_base for m in measurements if m.ok and m.o_base is not None]
     ).reshape(-1, 3)

@@ -440,8 +440,12 @@ def check(
     mode: Literal["fast", "precise"] = "precise",
     tolerances: EFTolerances | None = None,
     progress: bool = False,
+    check_cancelled: Callable[[], None] | None = None,
 ) -> CheckRun:
-    """The paper's EF check on a ``check`` session; writes the result JSON and its report."""
+    """The paper's EF check on a ``check`` session; writes the result JSON and its report.
+
+    ``check_cancelled`` is called after each laser frame's measurement (``run_ef_check``).
+    """
     out = Path(out)
     _require_suffix(out, (".json",), "--out")
     report_path = report_beside(out) if report == "beside" else report
@@ -457,6 +461,7 @@ def check(
         mode=mode,
         calibration_source=str(Path(calibration_path).resolve()),
         tolerances=tolerances,
+        check_cancelled=check_cancelled,
     )
     data = result.to_json()
     data["provenance"] = provenance(

@@ -4,16 +4,16 @@ import math
 import numpy as np
 import pytest
 
+from metrology import ef_check
 from metrology.ef_check import EFMeasurement, ef_uncertainties, run_ef_check
 from scanner.app.cli import main
 from scanner.core.camera import CameraModel, intersect_rays_with_plane
 from scanner.formats.calibration_covariance import PARAMETERS, CalibrationCovariance
 from scanner.formats.calibration_file import read_calibration
-from scanner.formats.session import read_session
+from scanner.formats.session import Frame, Session, read_session
+from scanner.virtual_cell.cell import load_target
 from scanner.virtual_cell.truth import read_truth
 from tests.scanner.scanning.test_triangulate import _calibration
-
-pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
@@ -21,6 +21,7 @@ def modern_check(simulated_cells):
     return simulated_cells("modern", sessions=("check",), seed=1)
 
 
+@pytest.mark.slow
 def test_ef_with_the_true_calibration_measures_the_diameter(modern_check, tmp_path):
     # With the truth as calibration only the image measurement is left: E and F must land on
     # the ring to well under the 0.03 mm the modern cell is allowed in total.
@@ -37,6 +38,7 @@ def test_ef_with_the_true_calibration_measures_the_diameter(modern_check, tmp_pa
     assert result.o_spread_mm < 0.15
 
 
+@pytest.mark.slow
 def test_a_stripe_lying_on_a_printed_diameter_is_refused_not_measured(simulated_cells):
     # Seed 7 draws a check view whose stripe runs along the printed A-O-B line: its centre,
     # pulled by the ink, measured |EF| 0.38 mm short. That view is refused with its reason;
@@ -51,6 +53,7 @@ def test_a_stripe_lying_on_a_printed_diameter_is_refused_not_measured(simulated_
     assert result.max_abs_error_mm < 0.03
 
 
+@pytest.mark.slow
 def test_ef_result_file_keeps_the_contract(modern_check, tmp_path):
     out = tmp_path / "ef.json"
     assert (
@@ -78,6 +81,7 @@ def test_ef_result_file_keeps_the_contract(modern_check, tmp_path):
     assert "PASS — 3 passed, 0 failed" in html_text
 
 
+@pytest.mark.slow
 def test_a_wrong_light_plane_shows_in_the_ef_error(modern_check, tmp_path):
     # Moving the light plane 1 mm scales every triangulated length: the check must see it.
     calib = json.loads((modern_check / "calibration_true.json").read_text())
@@ -89,6 +93,7 @@ def test_a_wrong_light_plane_shows_in_the_ef_error(modern_check, tmp_path):
     assert not result.passed and result.rows[0].final_status == "fail"
 
 
+@pytest.mark.slow
 def test_a_sweep_session_is_refused(tmp_path, modern_check, capsys):
     code = main(
         [
@@ -120,6 +125,7 @@ def _ef_pixels(cal, rng, n=6):
     return out
 
 
+@pytest.mark.slow
 def test_ef_uncertainty_carries_the_calibration_and_the_scatter_over_images():
     rng = np.random.default_rng(0)
     cal = _calibration(dist=(-0.1, 0.05, 0.0, 0.0, 0.0))
@@ -152,3 +158,26 @@ def test_ef_uncertainty_carries_the_calibration_and_the_scatter_over_images():
         draws.append(np.linalg.norm(p[0] - p[1]))
     assert share.u == pytest.approx(np.std(draws), rel=0.1)
     assert ms[0].to_json()["U_mm"] == pytest.approx(2 * ms[0].uncertainty.u)
+
+
+class _Cancelled(Exception):
+    pass
+
+
+def test_a_cancelled_check_stops_after_the_frame_it_is_measuring(tmp_path, monkeypatch):
+    """A PLC job's cancellation reaches the EF check: checked after each laser frame, it
+    stops there, without measuring the frames still to come."""
+    frames = [Frame(i, None, tmp_path / f"laser_{i}.png", np.eye(4)) for i in range(8)]
+    session = Session(tmp_path, "check", 1024, 768, frames, target=load_target("paper"))
+    measured = []
+    monkeypatch.setattr(ef_check, "check_frame", lambda s, f, c, m: measured.append(f.id))
+    calls = []
+
+    def check() -> None:
+        calls.append(1)
+        if len(calls) == 3:
+            raise _Cancelled
+
+    with pytest.raises(_Cancelled):
+        run_ef_check(session, _calibration(), check_cancelled=check)
+    assert measured == [0, 1, 2]

@@ -338,6 +338,7 @@ class PipelineJobs:
             calibration,
             job.check,
             tolerances=ef_tolerances(self.config.check),
+            check_cancelled=ctx.check_cancelled,
         )
         result = run.result
         results = (

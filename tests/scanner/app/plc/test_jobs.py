@@ -288,6 +288,24 @@ def test_a_calibration_job_is_cancelled_inside_the_calibration(
     assert current.read_text("utf-8") == "old"
 
 
+def test_a_check_job_is_cancelled_inside_the_ef_check(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+):
+    """The check stage gets the job's check: a thread-worker service's shutdown stops the EF
+    check at its next laser frame."""
+    current = tmp_path / "calibration.json"
+    current.write_text("{}", "utf-8")
+    _session(tmp_path / "drop", "s1", "check", 1000.0)
+    config = PlcConfig(storage=StorageConfig(calibration=str(current)))
+    ctx = _ctx(tmp_path, config)
+    ctx.work_dir.mkdir()
+    frames_done: list[int] = []
+    monkeypatch.setattr(stages, "check", _cancelling_stage(ctx, 1, frames_done))
+    with pytest.raises(JobCancelled):
+        PipelineJobs(config, source=FolderSource(tmp_path / "drop")).recalibration_check(ctx)
+    assert frames_done == [0, 1]
+
+
 def test_a_virtual_cell_capture_is_cancelled_inside_the_rendering(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ):
