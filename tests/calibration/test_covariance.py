@@ -17,6 +17,7 @@ from calibration.intrinsics_adjust import PARAM_NAMES
 from calibration.light_plane import calibrate_light_plane
 from tests.calibration import _synthetic as S
 from tests.calibration.test_light_plane import _laser_views
+from tests.cancelling import CancelAt, Cancelled
 
 
 def test_the_jackknife_recovers_the_covariance_of_a_mean():
@@ -65,10 +66,6 @@ def _calibration(seed: int) -> tuple:
     return cam, intr, targets, laser, plane, views, he
 
 
-class _Cancelled(Exception):
-    pass
-
-
 @pytest.mark.parametrize(
     ("cancel_at", "plane_fits", "hand_eye_fits"),
     [
@@ -97,16 +94,11 @@ def test_a_cancelled_uncertainty_stops_within_one_re_solve(
         covariance, "calibrate_light_plane", counting("plane", calibrate_light_plane)
     )
     monkeypatch.setattr(covariance, "calibrate_hand_eye", counting("hand_eye", calibrate_hand_eye))
-    calls = []
+    check = CancelAt(cancel_at)
 
-    def check() -> None:
-        calls.append(1)
-        if len(calls) == cancel_at:
-            raise _Cancelled
-
-    with pytest.raises(_Cancelled):
+    with pytest.raises(Cancelled):
         covariance.estimate_covariance(*inputs, check_cancelled=check)
-    assert len(calls) == cancel_at
+    assert check.calls == cancel_at
     assert fits == {"plane": plane_fits, "hand_eye": hand_eye_fits}
     # of the whole estimate's 1 + 3 + 4 plane fits and 1 + 3 + 6 hand-eyes
     assert plane_fits + hand_eye_fits < 8 + 10

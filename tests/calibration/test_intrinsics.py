@@ -17,6 +17,7 @@ from tests.calibration._observations import (
     project,
     synthetic_observation,
 )
+from tests.cancelling import CancelAt, Cancelled
 
 
 def real_data_dir() -> Path:
@@ -138,10 +139,6 @@ def test_zhang_published_result_from_given_corners():
     assert res.dist[1] == pytest.approx(0.190353, abs=0.02)
 
 
-class _Cancelled(Exception):
-    pass
-
-
 @pytest.mark.parametrize(
     "cancel_at",
     [
@@ -152,13 +149,8 @@ class _Cancelled(Exception):
 def test_a_cancelled_intrinsics_calibration_stops_in_or_after_the_model_choice(cancel_at: int):
     rng = np.random.default_rng(0)
     obs = [synthetic_observation(T, K_TRUE, np.zeros(5), rng, 0.1) for T in poses(8, rng)]
-    calls = []
+    check = CancelAt(cancel_at)
 
-    def check() -> None:
-        calls.append(1)
-        if len(calls) == cancel_at:
-            raise _Cancelled
-
-    with pytest.raises(_Cancelled):
+    with pytest.raises(Cancelled):
         calibrate_intrinsics(obs, SIZE, check_cancelled=check)
-    assert len(calls) == cancel_at
+    assert check.calls == cancel_at

@@ -19,6 +19,7 @@ from tests.calibration._observations import (
     project,
     synthetic_observation,
 )
+from tests.cancelling import CancelAt, Cancelled
 
 
 def model_error_px(res: IntrinsicsResult, dist_true: np.ndarray) -> tuple[float, float]:
@@ -124,10 +125,6 @@ def test_an_unknown_distortion_model_is_refused() -> None:
         calibrate_intrinsics([], SIZE, distortion="k9")
 
 
-class _Cancelled(Exception):
-    pass
-
-
 def _views_and_start(n: int, seed: int) -> tuple[list, np.ndarray]:
     """``n`` views of a distortion-free lens and their true poses (rotation vector, mm)."""
     rng = np.random.default_rng(seed)
@@ -149,16 +146,11 @@ def test_a_cancelled_model_choice_stops_within_one_fold(monkeypatch) -> None:
         return real_adjust(*args, **kwargs)
 
     monkeypatch.setattr(intrinsics_model, "_adjust", counting)
-    calls = []
+    check = CancelAt(4)  # before the fourth fold (the first of the second candidate)
 
-    def check() -> None:
-        calls.append(1)
-        if len(calls) == 4:  # before the fourth fold (the first of the second candidate)
-            raise _Cancelled
-
-    with pytest.raises(_Cancelled):
+    with pytest.raises(Cancelled):
         intrinsics_model.select_distortion_model(obs, K_TRUE, start, check_cancelled=check)
-    assert len(calls) == 4
+    assert check.calls == 4
     # The start's fit of all views, then three folds of two fits each (the fold's own and its
     # held-out poses'), of the 1 + 2 * 3 * 5 the whole choice makes.
     assert len(fits) == 1 + 2 * 3

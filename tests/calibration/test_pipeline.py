@@ -23,6 +23,7 @@ from scanner.formats.session import Frame, Session, read_session
 from scanner.virtual_cell.quick import quick_cell
 from scanner.virtual_cell.simulate import simulate_cell
 from scanner.virtual_cell.truth import read_truth
+from tests.cancelling import CancelAt, Cancelled
 from tests.conftest import REPO_ROOT, real_data_subdir
 
 
@@ -209,10 +210,6 @@ def test_linelight_plane_agrees_with_the_authors(monkeypatch):
     assert fig["worst_frame_mean_mm"] < 0.08
 
 
-class _Cancelled(Exception):
-    pass
-
-
 @pytest.fixture(scope="module")
 def quick_paper_session(tmp_path_factory) -> Session:
     """A small paper cell's calibration session (11 target images, seconds to render)."""
@@ -238,16 +235,11 @@ def test_a_cancelled_calibration_stops_at_its_next_image(quick_paper_session, mo
 
     if workers == 1:  # (a pool's processes could not take the stand-in)
         monkeypatch.setattr(pipeline, "_detect_one", counting)
-    calls = []
+    check = CancelAt(5)  # the stage's start, before the first image, after three
 
-    def check() -> None:
-        calls.append(1)
-        if len(calls) == 5:  # the stage's start, before the first image, after three
-            raise _Cancelled
-
-    with pytest.raises(_Cancelled):
+    with pytest.raises(Cancelled):
         calibrate_session(session, progress=False, workers=workers, check_cancelled=check)
-    assert len(calls) == 5
+    assert check.calls == 5
     if workers == 1:
         assert len(detected) == 3
 
@@ -286,10 +278,10 @@ def test_a_cancelled_calibration_stops_inside_its_long_fits(
         if entered:
             checks_inside.append(1)
             if len(checks_inside) == 2:  # before its second fit
-                raise _Cancelled
+                raise Cancelled
 
     announced: list[str] = []
-    with pytest.raises(_Cancelled):
+    with pytest.raises(Cancelled):
         calibrate_session(
             session,
             progress=False,

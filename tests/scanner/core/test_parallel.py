@@ -12,6 +12,7 @@ import pytest
 from scanner.core.parallel import process_map, thread_pool
 from scanner.stripe.extract import extract_stripe
 from scanner.virtual_cell.analytic import StripeSegment, render_stripes
+from tests.cancelling import CancelAt, Cancelled
 
 
 def _frame(seed: int) -> np.ndarray:
@@ -52,10 +53,6 @@ def _touch_and_square(item: tuple[Path, int]) -> int:
     return x * x
 
 
-class _Cancelled(Exception):
-    pass
-
-
 @pytest.mark.parametrize(("workers", "count"), [(1, 10), (2, 3), (2, 10)])
 def test_process_map_gives_the_results_in_order(tmp_path: Path, workers: int, count: int):
     items = [(tmp_path, x) for x in range(count)]
@@ -66,19 +63,14 @@ def test_process_map_gives_the_results_in_order(tmp_path: Path, workers: int, co
 
 @pytest.mark.parametrize("workers", [1, 2])
 def test_a_cancelled_process_map_stops_and_drops_what_has_not_started(tmp_path: Path, workers: int):
-    calls = []
-
-    def check() -> None:
-        calls.append(1)
-        if len(calls) == 3:  # before the first item, after the first, after the second
-            raise _Cancelled
+    check = CancelAt(3)  # before the first item, after the first, after the second
 
     items = [(tmp_path, x) for x in range(300)]
     results = []
-    with pytest.raises(_Cancelled):
+    with pytest.raises(Cancelled):
         for r in process_map(_touch_and_square, items, workers, chunksize=2, check_cancelled=check):
             results.append(r)
-    assert results == [0, 1] and len(calls) == 3
+    assert results == [0, 1] and check.calls == 3
     started = len(list(tmp_path.glob("*.done")))
     # (the items the pool's processes hold finish, a few on a quiet machine; the rest are
     # dropped)

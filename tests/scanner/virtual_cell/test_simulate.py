@@ -14,6 +14,7 @@ from scanner.formats.session import read_session
 from scanner.virtual_cell.quick import quick_cell, quick_simulation
 from scanner.virtual_cell.simulate import simulate_cell
 from scanner.virtual_cell.truth import read_truth
+from tests.cancelling import CancelAt, Cancelled
 
 pytestmark = pytest.mark.slow  # one quick simulation for the module: about 15 s
 
@@ -110,25 +111,16 @@ def test_chessboard_override_at_the_same_poses(simulated, tmp_path):
     np.testing.assert_allclose(fb.cam_from_target_true, fa.cam_from_target_true @ shift, atol=1e-9)
 
 
-class _Cancelled(Exception):
-    pass
-
-
 @pytest.mark.parametrize("workers", [1, 2])
 def test_a_cancelled_simulation_stops_at_its_next_frame(tmp_path, workers):
     """A PLC job's cancellation reaches the rendering: it stops after the frame it was
     called after (a pool's frames not yet started are dropped), and no session is written."""
-    calls = []
-
-    def check() -> None:
-        calls.append(1)
-        if len(calls) == 3:  # before the first frame, after the first, after the second
-            raise _Cancelled
+    check = CancelAt(3)  # before the first frame, after the first, after the second
 
     cell = quick_cell("paper", scale=4, sweep_frames=200)
-    with pytest.raises(_Cancelled):
+    with pytest.raises(Cancelled):
         simulate_cell(cell, tmp_path, sessions=("sweep",), workers=workers, check_cancelled=check)
-    assert len(calls) == 3
+    assert check.calls == 3
     rendered = list((tmp_path / "sweep" / "images").glob("*.png"))
     # (the frames the pool's processes hold finish: a few of the 200 on a quiet machine, more
     # where one process started late and the other ran ahead)
