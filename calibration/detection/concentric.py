@@ -22,7 +22,9 @@ The pipeline, every geometric fact coming from the target spec:
    centroid; the conic is refitted (algebraic, then Sampson distance) with outlier rejection.
    The diameter lines are located the same way between the rings; a diameter that a laser
    stripe hides (the paper's set-up puts the stripe on A-O-B) is the printed one's
-   conjugate with respect to the ring conics (exact for concentric circles).
+   conjugate with respect to the ring conics (exact for concentric circles). The two
+   diameters must be conjugate: a line through O that is not (clutter) gives way to the
+   printed one's conjugate, which must then show the print.
 6. *Labelling*: the orientation disc, looked for where each of the four candidate labellings
    puts it, must be dark at exactly one of them; A is that end, and C follows from z out of
    the face. Any doubt gives ``ok=False`` with a reason.
@@ -42,7 +44,6 @@ Steps 1-3 are in :mod:`calibration.detection.concentric_rays` (the candidate cen
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import cv2
@@ -50,6 +51,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calibration.detection.concentric_axes import (
+    Refit,
     _diameter_lines,
     _line_evidence,
     _lines_angle_deg,
@@ -347,7 +349,7 @@ def _conjugate_of_printed(
     axis_lines: list[NDArray],
     c: NDArray,
     conics: dict[int, NDArray],
-    refit: Callable[[list[NDArray], int | None], tuple[list[NDArray], list[NDArray]] | None],
+    refit: Refit,
     d: NDArray,
     rings: dict[int, tuple[NDArray, NDArray, NDArray]],
     offset_px: float,
@@ -368,7 +370,9 @@ def _conjugate_of_printed(
     for ln in axis_lines:
         ends = line_conic_intersections(ln, outer)
         ok = len(ends) == 2
-        evidence.append(_line_evidence(d, ln, c, ends, offset_px, ring_dark, bright) if ok else -1)
+        evidence.append(
+            _line_evidence(d, ln, c, ends, offset_px, ring_dark, bright) if ok else -np.inf
+        )
     keep = int(np.argmax(evidence))
     lines = list(axis_lines)
     lines[1 - keep] = conjugate_diameter(lines[keep], c, conics)
@@ -384,6 +388,11 @@ def _conjugate_of_printed(
             f"diameter lines not conjugate with respect to the rings ({off:.1f} deg off, "
             f"{conjugacy_deg(settled[0], c, conics):.1f} deg with the printed one's "
             "conjugate): not the target's diameters"
+        )
+    if settled[2] == 1 - keep:  # (nothing to judge it by: not taken on the rings' word alone)
+        return (
+            f"diameter lines not conjugate with respect to the rings ({off:.1f} deg off), and "
+            "the printed one's conjugate hidden under a stripe: not the target's diameters"
         )
     # A diameter put where the rings say it is, not found by the scan, must show the print
     # as plainly as the rings do (a wrong pencil's conjugate misses the printed line).

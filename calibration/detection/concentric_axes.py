@@ -25,7 +25,12 @@ from calibration.detection.concentric_rings import (
 )
 from calibration.detection.conics import fit_line
 
-__all__ = ["conjugacy_deg", "conjugate_diameter"]
+__all__ = ["Refit", "conjugacy_deg", "conjugate_diameter"]
+
+#: A refit of the two diameters (:func:`_refine_axes` with the rest of its arguments bound):
+#: from the lines and the index of one hidden under a stripe, the refitted lines and their
+#: points, or ``None``.
+Refit = Callable[[list[NDArray], int | None], tuple[list[NDArray], list[NDArray]] | None]
 
 
 def _diameter_lines(
@@ -179,6 +184,11 @@ def conjugacy_deg(lines: list[NDArray], c: NDArray, conics: dict[int, NDArray]) 
         The image of O, px.
     conics : dict of int to ndarray, shape (3, 3)
         Ring conics.
+
+    Returns
+    -------
+    float
+        The larger of the two angles, deg (0 to 90).
     """
     return max(
         _lines_angle_deg(lines[1 - i], conjugate_diameter(lines[i], c, conics)) for i in range(2)
@@ -324,7 +334,7 @@ def _refine_axes(
 
 
 def _settled_axes(
-    refit: Callable[[list[NDArray], int | None], tuple[list[NDArray], list[NDArray]] | None],
+    refit: Refit,
     axis_lines: list[NDArray],
     c: NDArray,
     conics: dict[int, NDArray],

@@ -13,6 +13,7 @@ from scanner.formats.calibration_file import read_calibration
 from scanner.formats.session import Frame, Session, read_session
 from scanner.virtual_cell.cell import load_target
 from scanner.virtual_cell.truth import read_truth
+from tests.cancelling import CancelAt, Cancelled
 from tests.scanner.scanning.test_triangulate import _calibration
 
 
@@ -160,10 +161,6 @@ def test_ef_uncertainty_carries_the_calibration_and_the_scatter_over_images():
     assert ms[0].to_json()["U_mm"] == pytest.approx(2 * ms[0].uncertainty.u)
 
 
-class _Cancelled(Exception):
-    pass
-
-
 def test_a_cancelled_check_stops_after_the_frame_it_is_measuring(tmp_path, monkeypatch):
     """A PLC job's cancellation reaches the EF check: checked after each laser frame, it
     stops there, without measuring the frames still to come."""
@@ -171,13 +168,8 @@ def test_a_cancelled_check_stops_after_the_frame_it_is_measuring(tmp_path, monke
     session = Session(tmp_path, "check", 1024, 768, frames, target=load_target("paper"))
     measured = []
     monkeypatch.setattr(ef_check, "check_frame", lambda s, f, c, m: measured.append(f.id))
-    calls = []
-
-    def check() -> None:
-        calls.append(1)
-        if len(calls) == 3:
-            raise _Cancelled
-
-    with pytest.raises(_Cancelled):
+    check = CancelAt(3)
+    with pytest.raises(Cancelled):
         run_ef_check(session, _calibration(), check_cancelled=check)
+    assert check.calls == 3
     assert measured == [0, 1, 2]
