@@ -38,7 +38,10 @@ Steps 1-3 are in :mod:`calibration.detection.concentric_rays` (the candidate cen
 :mod:`calibration.detection.concentric_centre`), 4-5 in
 :mod:`calibration.detection.concentric_rings` (the diameters in
 :mod:`calibration.detection.concentric_axes`) and 6 in
-:mod:`calibration.detection.concentric_labels`; :func:`detect_concentric` here runs them.
+:mod:`calibration.detection.concentric_labels`. :func:`detect_concentric` here runs the
+passes over the closing scales and the coarse stage (steps 1-4);
+:func:`~calibration.detection.concentric_fine.measure_and_label` runs the fine stage
+(steps 5-6) from the coarse pencil.
 """
 
 from __future__ import annotations
@@ -46,20 +49,9 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field, replace
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from calibration.detection.concentric_axes import (
-    Refit,
-    _diameter_lines,
-    _line_evidence,
-    _lines_angle_deg,
-    _refine_axes,
-    _settled_axes,
-    conjugacy_deg,
-    conjugate_diameter,
-)
 from calibration.detection.concentric_centre import (
     HOUGH_LINES,
     WIDE_HOUGH_LINES,
@@ -68,52 +60,28 @@ from calibration.detection.concentric_centre import (
     _Centre,
     _climbed_centre,
 )
-from calibration.detection.concentric_labels import (
-    _axis_dir,
-    _combine_centre,
-    _label_by_marker,
-    _local_crossing,
-    _locally_biased,
-    label_up_to_symmetry,
-)
+from calibration.detection.concentric_fine import KIND, measure_and_label
 from calibration.detection.concentric_rays import (
-    _bright_mask,
-    _darkness,
+    _coarse_darkness,
     _distinct_lines,
     _hough_lines,
     _label_rays,
-    _sample,
     _threshold_map,
 )
 from calibration.detection.concentric_rings import (
     MIN_CONIC_POINTS,
     ConcentricDetectorSettings,
-    _conic_axes_ratio,
-    _conic_normals,
-    _consistent_rings,
     _ellipse_ok,
-    _min_spacing_px,
     _nested_rings,
     _pencil_centre,
-    _pencil_offsets,
-    _pencil_predictions,
-    _perimeter_px,
-    _prune_by_pencil,
-    _refine_ring,
     _relabel_by_ratios,
-    _unit_line,
     concentric_affine_conics,
-    pencil_tolerance_px,
-    spline_window,
 )
 from calibration.detection.conics import (
     fit_conic,
-    harmonic_conjugate,
-    intersect_lines,
-    line_conic_intersections,
     sampson_distances,
 )
-from calibration.detection.observations import AxisObservation, RingObservation, TargetObservation
+from calibration.detection.observations import TargetObservation
 from calibration.detection.ray_kernels import FIT_TOL_PX
 from scanner.core.images import to_gray_float
 from scanner.core.targets import ConcentricCirclesTarget
@@ -121,8 +89,6 @@ from scanner.core.targets import ConcentricCirclesTarget
 __all__ = ["ConcentricDetectorSettings", "detect_concentric"]
 
 log = logging.getLogger(__name__)
-
-KIND = "concentric_circles"
 
 #: The fourth and fifth passes sample the chosen centre's rays as bundles of five parallel rays
 #: this far apart (px), each sample their mean but for the darkest and the lightest
@@ -136,22 +102,6 @@ BUNDLE_STEP_PX = 2.0
 #: the same false-crossing rate sits at about 0.65-0.8 of ``Z_LINE``. Chosen on the
 #: randomised benchmark's refused views: at 0.5 one of the views 0.7 detects is lost.
 BUNDLE_Z_LINE = 0.7
-
-#: Largest angle between a diameter's image and the other's conjugate with respect to the
-#: rings (:func:`~calibration.detection.concentric_axes.conjugacy_deg`) for two lines to be
-#: the target's diameters. Over 1421 rightly labelled views of the randomised benchmark
-#: (seeds 0-11) the true pairs stay within 1.7 deg (median 0.012 deg), the modern cell's
-#: lens (k1 = -0.12) within 0.12 deg; a clutter line through O once taken for a diameter
-#: was 44 deg off.
-MAX_CONJUGACY_DEG = 5.0
-
-#: Least evidence of print (:func:`~calibration.detection.concentric_axes._line_evidence`),
-#: as a share of the rings' darkness, of a diameter that replaces a line through O that was
-#: not the printed one's conjugate (:func:`_conjugate_of_printed`); 0.3 for diameters the
-#: scan found. Such replacements on the randomised benchmark's views showed 1.10-1.43 times
-#: the rings' darkness where right, 0.69 where a wrong ring pencil put the conjugate 3 deg
-#: off the print (a view of contrast over noise 2.5, below the domain's 3).
-MIN_CONJUGATE_EVIDENCE = 0.8
 
 
 @dataclass(frozen=True)
@@ -207,6 +157,10 @@ class _ScaleState:
     coarse: dict[int, _CoarseMaps] = field(default_factory=dict)
     """The coarse maps of each scale (closing kernel, px) the first pass made: the later
     passes label other rays on the same maps."""
+
+    def reached(self, stage: int) -> None:
+        """Told by the fine stage which of its stages the scale passed."""
+        self.progress = stage
 
 
 def detect_concentric(
@@ -345,69 +299,6 @@ def _coarse_pencil(
     )
 
 
-def _conjugate_of_printed(
-    axis_lines: list[NDArray],
-    c: NDArray,
-    conics: dict[int, NDArray],
-    refit: Refit,
-    d: NDArray,
-    rings: dict[int, tuple[NDArray, NDArray, NDArray]],
-    offset_px: float,
-    bright: NDArray,
-) -> tuple[list[NDArray], list[NDArray], int | None] | str:
-    """Diameters that are conjugate with respect to the rings, from two that are not.
-
-    The line with more evidence of print (:func:`_line_evidence`) stays; the other gives way
-    to its conjugate (:func:`conjugate_diameter`), and both are settled again
-    (:func:`_settled_axes` with ``refit``). The conjugate must show the print as plainly as
-    the rings (:data:`MIN_CONJUGATE_EVIDENCE`). Returns the settled lines, their points and
-    the hidden one's index, or why not.
-    """
-    outer = conics[max(conics)]
-    ring_pts = np.vstack([r[0] for r in rings.values()])
-    ring_dark = float(np.median(_sample(d, ring_pts[:, 0], ring_pts[:, 1])))
-    evidence = []
-    for ln in axis_lines:
-        ends = line_conic_intersections(ln, outer)
-        ok = len(ends) == 2
-        evidence.append(
-            _line_evidence(d, ln, c, ends, offset_px, ring_dark, bright) if ok else -np.inf
-        )
-    keep = int(np.argmax(evidence))
-    lines = list(axis_lines)
-    lines[1 - keep] = conjugate_diameter(lines[keep], c, conics)
-    settled = _settled_axes(refit, lines, c, conics)
-    off = conjugacy_deg(axis_lines, c, conics)
-    if settled is None:
-        return (
-            f"diameter lines not conjugate with respect to the rings ({off:.1f} deg off), "
-            "and the printed one's conjugate not measurable: not the target's diameters"
-        )
-    if settled[2] is None and conjugacy_deg(settled[0], c, conics) > MAX_CONJUGACY_DEG:
-        return (
-            f"diameter lines not conjugate with respect to the rings ({off:.1f} deg off, "
-            f"{conjugacy_deg(settled[0], c, conics):.1f} deg with the printed one's "
-            "conjugate): not the target's diameters"
-        )
-    if settled[2] == 1 - keep:  # (nothing to judge it by: not taken on the rings' word alone)
-        return (
-            f"diameter lines not conjugate with respect to the rings ({off:.1f} deg off), and "
-            "the printed one's conjugate hidden under a stripe: not the target's diameters"
-        )
-    # A diameter put where the rings say it is, not found by the scan, must show the print
-    # as plainly as the rings do (a wrong pencil's conjugate misses the printed line).
-    new = settled[0][1 - keep]
-    ends = line_conic_intersections(new, outer)
-    ev = _line_evidence(d, new, c, ends, offset_px, ring_dark, bright) if len(ends) == 2 else 0.0
-    if ev < MIN_CONJUGATE_EVIDENCE * ring_dark:
-        return (
-            f"diameter lines not conjugate with respect to the rings ({off:.1f} deg off), and "
-            f"the printed one's conjugate not printed: darkness {ev:.2f} on it against "
-            f"{ring_dark:.2f} on the rings"
-        )
-    return settled
-
-
 def _trimmed_conic(points: NDArray) -> NDArray | None:
     """A ring's coarse conic from its ray crossings, points far from the fit dropped: a ray
     that missed one crossing names the next ring's point as this one's."""
@@ -422,20 +313,6 @@ def _trimmed_conic(points: NDArray) -> NDArray | None:
             return None
         conic = fit_conic(points, geometric=False)
     return conic
-
-
-def _coarse_darkness(
-    img: NDArray, kernel: int, hidden: NDArray | None = None
-) -> tuple[NDArray, NDArray, float, NDArray]:
-    """The coarse stage's darkness, background, lit paper level and hidden (bright) pixels
-    with the closing kernel ``kernel`` px; ``hidden``: the bright pixels where already known
-    (``_bright_mask(img, kernel) > 0``)."""
-    # Coarse stage on a lightly smoothed image: noise and grain drop about threefold, a
-    # printed line keeps most of its darkness.
-    if hidden is None:
-        hidden = _bright_mask(img, kernel) > 0
-    d, bg, lit = _darkness(cv2.GaussianBlur(img, (0, 0), 1.0), kernel, hidden)
-    return d, bg, lit, hidden
 
 
 def _coarse_maps(
@@ -470,7 +347,6 @@ def _detect_with_kernel(
     Sets ``state.progress`` to the stages passed, and ``state.floor`` where this is the first
     scale (it is ``None``).
     """
-    h, w = img.shape
     radii = np.asarray(target.ring_radii_mm, dtype=np.float64)
     d: NDArray | None = None
     bg: NDArray | None = None
@@ -536,264 +412,15 @@ def _detect_with_kernel(
             conics, c = nested, centre
 
     state.progress = 3
-    # -- line width in px estimate, for windows
-    spacing_px = _min_spacing_px(conics, c)
-    line_frac = target.line_width_mm / float(np.min(np.diff(radii)))
-    # The window reaches the paper on both sides of a line but not the neighbouring rings.
-    line_px = line_frac * spacing_px
-    half_window = max(1.5, min(1.6 * line_px + 2.0, 0.45 * spacing_px), 0.5 * line_px + 1.0)
-    # Finer darkness map now that the scale is known (kernel several line widths, < spacing).
-    kernel2 = int(np.clip(4 * half_window + 3, 9, max(9, 0.8 * spacing_px)))
-    bright = _bright_mask(img, kernel2)
-    if kernel2 != kernel:
-        d, bg, _ = _darkness(img, kernel2, bright > 0)
-    elif d is None or bg is None:  # a later pass: the coarse maps again (not kept)
-        d, bg, _, _ = _coarse_darkness(img, kernel, bright > 0)
-    # The spline over the part the profiles reach: a ring point moves by up to a search
-    # (3 half windows) when refined, and its profile spans a search and a window beyond it.
-    spline = spline_window(d, list(conics.values()), c, 2 * (4 * half_window + 1) + 8)
-
-    # -- sub-pixel rings
-    axis_lines = [l1 / np.linalg.norm(l1[:2]), l2 / np.linalg.norm(l2[:2])]
-    rings: dict[int, tuple[NDArray, NDArray, NDArray]] = {}
-    scanned_at: NDArray | None = None
-    hidden_axis: int | None = None  # a diameter under a laser stripe: see _diameter_lines
-    for _ in range(2):
-        rings = {}
-        n_rays = int(np.clip(_perimeter_px(conics[max(conics)], c) / 3.0, 180, 1440))
-        angles = np.linspace(0, 2 * np.pi, n_rays, endpoint=False)
-        dirs = np.column_stack([np.cos(angles), np.sin(angles)])
-        for k in sorted(conics):
-            res = _refine_ring(
-                spline,
-                conics[k],
-                c,
-                dirs,
-                angles,
-                axis_lines,
-                half_window,
-                spacing_px,
-                s,
-                (w, h),
-                bright,
-            )
-            if res is not None:
-                rings[k] = res
-        if len(rings) < s.min_rings:
-            return TargetObservation.failed(
-                f"no ring pencil found: {len(rings)} rings measured, expected >= {s.min_rings}",
-                size,
-                KIND,
-            )
-        # The refitted conics replace the coarse ones; the pencil gives the centre again.
-        # A ring whose conic is not a member of the spec's pencil (noise, a neighbour's
-        # points) is dropped rather than allowed to name wrong points.
-        conics = {k: v[1] for k, v in rings.items()}
-        keep = _consistent_rings(conics, radii)
-        rings = _prune_by_pencil({k: rings[k] for k in keep}, radii, c, spacing_px)
-        conics = {k: v[1] for k, v in rings.items()}
-        if len(rings) < s.min_rings:
-            return TargetObservation.failed(
-                f"no ring pencil found: {len(rings)} ring conics agree with the spec's radius "
-                f"ratios, expected >= {s.min_rings}",
-                size,
-                KIND,
-            )
-        c_new = _pencil_centre(conics, radii, c, strict=True)
-        if c_new is None:
-            return TargetObservation.failed(
-                "no ring pencil found: refined ring conics disagree with the spec's radius ratios",
-                size,
-                KIND,
-            )
-        # The diameters through the refined centre (the coarse one may be pixels off, and a
-        # line through it then misses a thin diameter; the Hough pair that gave it may hold
-        # a stripe's edge), then refined from the rings' geometry.
-        if scanned_at is None or np.linalg.norm(c_new - scanned_at) > 0.5:
-            scanned = _diameter_lines(z_rays, c_new, conics, line_px, spacing_px)
-            if scanned is not None:
-                (axis_lines, hidden_axis), scanned_at = scanned, c_new
-        c = c_new
-
-        def refit(
-            lines: list[NDArray],
-            hidden: int | None,
-            c: NDArray = c,
-            conics: dict[int, NDArray] = conics,
-        ) -> tuple[list[NDArray], list[NDArray]] | None:
-            return _refine_axes(
-                spline, lines, c, conics, radii, half_window, line_px, (w, h), bright, hidden
-            )
-
-        axis_res = _settled_axes(refit, axis_lines, c, conics, hidden_axis)
-        if axis_res is None:
-            return TargetObservation.failed(
-                "diameter lines not measurable between the rings", size, KIND
-            )
-        if axis_res[2] is None and conjugacy_deg(axis_res[0], c, conics) > MAX_CONJUGACY_DEG:
-            # Not the images of perpendicular diameters: where the angular scan saw neither
-            # diameter (a steep target), the Hough pair may hold a clutter line through O.
-            axis_res = _conjugate_of_printed(
-                axis_res[0], c, conics, refit, d, rings, 2.0 * half_window + 2.0, bright
-            )
-            if isinstance(axis_res, str):
-                return TargetObservation.failed(axis_res, size, KIND)
-        axis_lines, axis_pts, hidden_axis = axis_res
-        if _lines_angle_deg(*axis_lines) < 12.0:
-            return TargetObservation.failed(
-                "diameter lines not measurable: both converged on one line", size, KIND
-            )
-        # (A ring the coarse ray labelling missed is not recovered: only measured rings count.)
-
-    state.progress = 4
-    ratio = min(_conic_axes_ratio(cn) for cn in conics.values())
-    if ratio < np.cos(np.radians(s.max_tilt_deg)):
-        return TargetObservation.failed(
-            f"too oblique: ring images flattened to {ratio:.2f}, "
-            f"expected >= {np.cos(np.radians(s.max_tilt_deg)):.2f} (tilt <= {s.max_tilt_deg} deg)",
-            size,
-            KIND,
-        )
-
-    state.progress = 5
-    # -- centre O: intersection of the diameter lines, checked against the pencil centre
-    x = intersect_lines(axis_lines[0], axis_lines[1])
-    o_lines = x[:2] / x[2]
-    if np.linalg.norm(o_lines - c) > max(2.0, 0.05 * spacing_px):
-        return TargetObservation.failed(
-            f"diameter lines cross {np.linalg.norm(o_lines - c):.1f} px from the ring pencil's "
-            "centre: not the target's diameters",
-            size,
-            KIND,
-        )
-    center = _combine_centre(o_lines, c, conics, axis_lines)
-
-    # -- ends of each ring on both lines, in a consistent orientation
-    kmax = max(conics)
-    ends = []
-    for ln in axis_lines:
-        pts = line_conic_intersections(ln, conics[kmax])
-        if len(pts) != 2:
-            return TargetObservation.failed("diameter line misses the largest ring", size, KIND)
-        ends.append(pts)
-    ring_pts = np.vstack([r[0] for r in rings.values()])
-    line_dark = float(np.median(_sample(d, ring_pts[:, 0], ring_pts[:, 1])))
-    paper = float(np.median(_sample(bg, ring_pts[:, 0], ring_pts[:, 1])))
-    # Both diameters must be printed lines, not any two lines through the centre.
-    # (A diameter hidden under a stripe was found hidden, not dark: its conjugate is printed.)
-    for index, (ln, ends_ln) in enumerate(zip(axis_lines, ends, strict=True)):
-        if index == hidden_axis:
-            continue
-        ev = _line_evidence(d, ln, center, ends_ln, 2.0 * half_window + 2.0, line_dark, bright)
-        if ev < 0.3 * line_dark:
-            return TargetObservation.failed(
-                f"diameter line not printed: darkness {ev:.2f} on it against "
-                f"{line_dark:.2f} on the rings",
-                size,
-                KIND,
-            )
-    state.progress = 6
-    labelled = _label_by_marker(
-        img, bg, target, center, ends, conics, radii, axis_lines, line_dark, paper
-    )
-    labelling = "unique"
-    if isinstance(labelled, str):
-        if not labelled.startswith("orientation marker"):
-            return TargetObservation.failed(labelled, size, KIND)
-        # No marker to tell A: the view is still good for the intrinsics and the light
-        # plane, labelled up to the target's four-fold symmetry (and says so).
-        labelled = label_up_to_symmetry(center, ends, axis_lines)
-        labelling = "symmetry"
-    ix, sign_x, sign_y, marker_px = labelled
-    xline, yline = _unit_line(axis_lines[ix]), _unit_line(axis_lines[1 - ix])
-
-    # Lens distortion bends the lines and rings slightly: every crossing is refined by local
-    # quadratic fits of the measured points around it (exact to second order).
-    # O itself stays the mean of the pencil's centre and the lines' crossing: both use every
-    # ring and line point, which beats a local fit at the noise level.
-    pts_x, pts_y = axis_pts[ix], axis_pts[1 - ix]
-    named: dict[str, NDArray] = {"O": center}
-    points_px = [center]
-    points_t = [np.zeros(3)]
-    names = ["O"]
-    for k in sorted(conics):
-        r = radii[k]
-        # The other rings' pencil checks every named point (see below).
-        predicted = _pencil_predictions(conics, radii, k)
-        bias = float(np.median(_pencil_offsets(predicted, rings[k][0]))) if predicted else 0.0
-        for axis_name, ln, sgn, axis_idx in (("x", xline, sign_x, 0), ("y", yline, sign_y, 1)):
-            pts = line_conic_intersections(ln, conics[k])
-            if len(pts) != 2:
-                continue
-            dirv = _axis_dir(ln, sgn)
-            apts = pts_x if axis_name == "x" else pts_y
-            for p in pts:
-                side = 1.0 if float((p - center) @ dirv) > 0 else -1.0
-                if k in rings:
-                    ring_pts = rings[k][0]
-                    nrm = _conic_normals(conics[k], p[None])[0]
-                    ring_line = np.array([nrm[0], nrm[1], -float(nrm @ p)])  # the tangent
-                    reach = max(15.0, 0.35 * float(np.linalg.norm(p - center)))
-                    # Only where the ring was measured near the crossing: a conic extrapolated
-                    # over a part hidden by a stripe or cut by the border may be far off
-                    # there, though its ratios agree with the other rings.
-                    seen = min(reach, max(15.0, 3.0 * spacing_px))
-                    if np.min(np.linalg.norm(ring_pts - p, axis=1)) > seen:
-                        continue
-                    # ... and where the other rings' pencil puts this ring there too
-                    if predicted and abs(
-                        float(_pencil_offsets(predicted, p[None])[0]) - bias
-                    ) > pencil_tolerance_px(spacing_px):
-                        continue
-                    biased = _locally_biased(
-                        sampson_distances(conics[k], ring_pts), ring_pts, p, reach
-                    ) or _locally_biased(apts @ ln[:2] + ln[2], apts, p, reach)
-                    q = _local_crossing(ring_pts, ring_line, apts, ln, p, reach) if biased else None
-                    if q is not None and np.linalg.norm(q - p) < 2.0:
-                        p = q
-                if not (0 <= p[0] <= w - 1 and 0 <= p[1] <= h - 1):
-                    continue
-                pt = np.zeros(3)
-                pt[axis_idx] = side * r
-                points_px.append(p)
-                points_t.append(pt)
-                names.append(f"r{k}{'+' if side > 0 else '-'}{axis_name}")
-                if k == kmax:
-                    key = {("x", 1.0): "A", ("x", -1.0): "B", ("y", 1.0): "C", ("y", -1.0): "D"}
-                    named[key[(axis_name, side)]] = p
-
-    vps: dict[str, NDArray] = {}
-    if all(n in named for n in "ABCD"):
-        vps["p"] = harmonic_conjugate(named["A"], named["B"], center)
-        vps["q"] = harmonic_conjugate(named["C"], named["D"], center)
-
-    ring_obs = [
-        RingObservation(
-            radius_mm=float(radii[k]),
-            edge_points_px=rings[k][0],
-            conic=conics[k],
-            index=int(k),
-        )
-        for k in sorted(rings)
-    ]
-    ax_pts_x, ax_pts_y = axis_pts[ix], axis_pts[1 - ix]
-    axes = [
-        AxisObservation("x", ax_pts_x, _unit_line(xline)),
-        AxisObservation("y", ax_pts_y, _unit_line(yline)),
-    ]
-    return TargetObservation(
-        ok=True,
-        reason="",
-        image_size=size,
-        kind=KIND,
-        points_px=np.asarray(points_px, dtype=np.float64),
-        points_target=np.asarray(points_t, dtype=np.float64),
-        point_names=names,
-        rings=ring_obs,
-        axis_points=axes,
-        center_px=center,
-        named_px=named,
-        vanishing_points=vps,
-        marker_px=marker_px,
-        labelling=labelling,
+    return measure_and_label(
+        img,
+        target,
+        s,
+        conics,
+        c,
+        (l1, l2),
+        z_rays,
+        kernel,
+        None if d is None or bg is None else (d, bg),
+        state.reached,
     )

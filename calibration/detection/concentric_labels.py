@@ -13,7 +13,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calibration.detection.concentric_rays import _sample
-from calibration.detection.concentric_rings import _unit_line
+from calibration.detection.concentric_rings import (
+    _conic_normals,
+    _pencil_offsets,
+    _pencil_predictions,
+    _unit_line,
+    pencil_tolerance_px,
+)
+from calibration.detection.conics import line_conic_intersections, sampson_distances
 from scanner.core.targets import ConcentricCirclesTarget
 
 
@@ -229,3 +236,104 @@ def label_up_to_symmetry(
 def _apply_h(H: NDArray, pts: NDArray) -> NDArray:
     x = np.column_stack([pts, np.ones(len(pts))]) @ H.T
     return x[:, :2] / x[:, 2:3]
+
+
+def _named_points(
+    center: NDArray,
+    conics: dict[int, NDArray],
+    rings: dict[int, tuple[NDArray, NDArray, NDArray]],
+    radii: NDArray,
+    xy_lines: tuple[NDArray, NDArray],
+    xy_signs: tuple[float, float],
+    xy_points: tuple[NDArray, NDArray],
+    spacing_px: float,
+    size: tuple[int, int],
+) -> tuple[list[NDArray], list[NDArray], list[str], dict[str, NDArray]]:
+    """The target's points named in the image: O and each ring's crossings with the diameters.
+
+    Parameters
+    ----------
+    center : ndarray, shape (2,)
+        The image of O (px).
+    conics : dict of int to ndarray, shape (3, 3)
+        The measured rings' conics by ring index.
+    rings : dict of int to tuple
+        Each measured ring's centre-line points ``(N, 2)`` first.
+    radii : ndarray, shape (K,)
+        The spec's ring radii (mm).
+    xy_lines : tuple of two ndarray, shape (3,)
+        The x and y diameters' lines (unit normals).
+    xy_signs : tuple of two float
+        +1 or -1: which way along each line is the target's positive axis.
+    xy_points : tuple of two ndarray, shape (M, 2)
+        The points measured on each diameter.
+    spacing_px : float
+        The rings' smallest spacing in the image.
+    size : tuple of int
+        The image's (width, height).
+
+    Returns
+    -------
+    points_px, points_target, names, named
+        The image points ``(2,)``, their target points ``(3,)`` (mm) and names
+        (``"O"``, ``"r{k}+x"``, ...), and the named points O, A, B, C, D that were seen.
+    """
+    w, h = size
+    xline, yline = xy_lines
+    sign_x, sign_y = xy_signs
+    pts_x, pts_y = xy_points
+    kmax = max(conics)
+    # Lens distortion bends the lines and rings slightly: every crossing is refined by local
+    # quadratic fits of the measured points around it (exact to second order).
+    # O itself stays the mean of the pencil's centre and the lines' crossing: both use every
+    # ring and line point, which beats a local fit at the noise level.
+    named: dict[str, NDArray] = {"O": center}
+    points_px = [center]
+    points_t = [np.zeros(3)]
+    names = ["O"]
+    for k in sorted(conics):
+        r = radii[k]
+        # The other rings' pencil checks every named point (see below).
+        predicted = _pencil_predictions(conics, radii, k)
+        bias = float(np.median(_pencil_offsets(predicted, rings[k][0]))) if predicted else 0.0
+        for axis_name, ln, sgn, axis_idx in (("x", xline, sign_x, 0), ("y", yline, sign_y, 1)):
+            pts = line_conic_intersections(ln, conics[k])
+            if len(pts) != 2:
+                continue
+            dirv = _axis_dir(ln, sgn)
+            apts = pts_x if axis_name == "x" else pts_y
+            for p in pts:
+                side = 1.0 if float((p - center) @ dirv) > 0 else -1.0
+                if k in rings:
+                    ring_pts = rings[k][0]
+                    nrm = _conic_normals(conics[k], p[None])[0]
+                    ring_line = np.array([nrm[0], nrm[1], -float(nrm @ p)])  # the tangent
+                    reach = max(15.0, 0.35 * float(np.linalg.norm(p - center)))
+                    # Only where the ring was measured near the crossing: a conic extrapolated
+                    # over a part hidden by a stripe or cut by the border may be far off
+                    # there, though its ratios agree with the other rings.
+                    seen = min(reach, max(15.0, 3.0 * spacing_px))
+                    if np.min(np.linalg.norm(ring_pts - p, axis=1)) > seen:
+                        continue
+                    # ... and where the other rings' pencil puts this ring there too
+                    if predicted and abs(
+                        float(_pencil_offsets(predicted, p[None])[0]) - bias
+                    ) > pencil_tolerance_px(spacing_px):
+                        continue
+                    biased = _locally_biased(
+                        sampson_distances(conics[k], ring_pts), ring_pts, p, reach
+                    ) or _locally_biased(apts @ ln[:2] + ln[2], apts, p, reach)
+                    q = _local_crossing(ring_pts, ring_line, apts, ln, p, reach) if biased else None
+                    if q is not None and np.linalg.norm(q - p) < 2.0:
+                        p = q
+                if not (0 <= p[0] <= w - 1 and 0 <= p[1] <= h - 1):
+                    continue
+                pt = np.zeros(3)
+                pt[axis_idx] = side * r
+                points_px.append(p)
+                points_t.append(pt)
+                names.append(f"r{k}{'+' if side > 0 else '-'}{axis_name}")
+                if k == kmax:
+                    key = {("x", 1.0): "A", ("x", -1.0): "B", ("y", 1.0): "C", ("y", -1.0): "D"}
+                    named[key[(axis_name, side)]] = p
+    return points_px, points_t, names, named

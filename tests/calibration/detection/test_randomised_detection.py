@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from calibration.detection import concentric, concentric_rings
+from calibration.detection import concentric_fine, concentric_rings
 from calibration.detection.concentric_axes import conjugacy_deg
 from calibration.detection.detect import detect_target
 from calibration.detection.observations import TargetObservation
@@ -269,7 +269,7 @@ def test_the_fine_stages_spline_window_detects_as_the_whole_map_does(monkeypatch
         whole = ndimage.spline_filter(darkness, order=3)
         return concentric_rings.SplineWindow(darkness, whole, (0, 0), whole)
 
-    monkeypatch.setattr(concentric, "spline_window", whole_map)
+    monkeypatch.setattr(concentric_fine, "spline_window", whole_map)
     whole = detect_target(v.image, v.spec)
     assert windowed and whole
     np.testing.assert_array_equal(windowed.points_px, whole.points_px)
