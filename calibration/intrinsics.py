@@ -208,8 +208,9 @@ def calibrate_intrinsics(
         some; or a key of ``DISTORTION_MODELS`` (``"none"``, ``"k1"``, ``"k1k2"``,
         ``"k1k2p1p2"``, ``"full"``).
     check_cancelled : callable, optional
-        Called before each fold of the distortion model's choice and before the chosen
-        model's fit: whatever it raises stops the calibration and comes out of this function.
+        Called after the first adjustment and each one without outlier views, before each
+        fold of the distortion model's choice and before the chosen model's fit: whatever it
+        raises stops the calibration and comes out of this function.
 
     Returns
     -------
@@ -305,7 +306,9 @@ def calibrate_intrinsics(
     for n in fixed:
         if PARAM_NAMES.index(n) >= 4:
             dist0[PARAM_NAMES.index(n) - 4] = 0.0
+    check = check_cancelled or (lambda: None)
     x, res, prob, sol = _adjust(obs, K0, dist0, poses, f_scale_px, max_points_per_ring, fixed)
+    check()
 
     # -- outlier views
     for _ in range(2):
@@ -325,6 +328,7 @@ def calibrate_intrinsics(
         poses = x[9:].reshape(-1, 6)[keep]
         K1 = camera_matrix(x)
         x, res, prob, sol = _adjust(obs, K1, x[4:9], poses, f_scale_px, max_points_per_ring, fixed)
+        check()
 
     selection = None
     if auto:
@@ -332,8 +336,7 @@ def calibrate_intrinsics(
         selection = select_distortion_model(
             obs, camera_matrix(x), poses, check_cancelled=check_cancelled
         )
-        if check_cancelled is not None:
-            check_cancelled()
+        check()
         model = selection.chosen
         fixed = DISTORTION_MODELS[model]
         dist1 = x[4:9].copy()

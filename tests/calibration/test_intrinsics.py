@@ -5,6 +5,7 @@ import cv2
 import numpy as np
 import pytest
 
+from calibration import intrinsics
 from calibration.detection.observations import TargetObservation
 from calibration.intrinsics import calibrate_intrinsics, paper_intrinsics
 from scanner.formats.reference_data import ZHANG_MSR_IMAGE_SIZE, zhang_msr_corners
@@ -140,17 +141,29 @@ def test_zhang_published_result_from_given_corners():
 
 
 @pytest.mark.parametrize(
-    "cancel_at",
+    ("cancel_at", "choice_begun"),
     [
-        2,  # in the distortion model's choice, before its second fold
-        3 * 5 + 1,  # after its 3 folds of 5 candidates, before the chosen model's fit
+        (1, False),  # after the first adjustment (no outlier views here): before the choice
+        (3, True),  # in the distortion model's choice, before its second fold
+        (1 + 3 * 5 + 1, True),  # after its 3 folds of 5 candidates, before the chosen fit
     ],
 )
-def test_a_cancelled_intrinsics_calibration_stops_in_or_after_the_model_choice(cancel_at: int):
+def test_a_cancelled_intrinsics_calibration_stops_before_in_or_after_the_model_choice(
+    monkeypatch, cancel_at: int, choice_begun: bool
+):
     rng = np.random.default_rng(0)
     obs = [synthetic_observation(T, K_TRUE, np.zeros(5), rng, 0.1) for T in poses(8, rng)]
     check = CancelAt(cancel_at)
+    begun = []
+    real_choice = intrinsics.select_distortion_model
+
+    def entered(*args, **kwargs):
+        begun.append(True)
+        return real_choice(*args, **kwargs)
+
+    monkeypatch.setattr(intrinsics, "select_distortion_model", entered)
 
     with pytest.raises(Cancelled):
         calibrate_intrinsics(obs, SIZE, check_cancelled=check)
     assert check.calls == cancel_at
+    assert bool(begun) == choice_begun
