@@ -20,6 +20,9 @@ The pipeline, every geometric fact coming from the target spec:
 5. *Sub-pixel*: for every ring, profiles along the conic's normals are sampled (bicubic) and
    the centre line of the printed line found as the fixed point of a symmetric-window
    centroid; the conic is refitted (algebraic, then Sampson distance) with outlier rejection.
+   Along every ray from O the refined rings must lie where the radii's projectivity puts
+   them (rings a ring off over a sector agree with each other's pencil, not with that): one
+   ring that does not is dropped, rings mixed with their neighbours refuse the view.
    The diameter lines are located the same way between the rings; a diameter that a laser
    stripe hides (the paper's set-up puts the stripe on A-O-B) is the printed one's
    conjugate with respect to the ring conics (exact for concentric circles). The two

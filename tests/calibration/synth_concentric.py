@@ -26,6 +26,20 @@ def demo_target() -> ConcentricCirclesTarget:
     )
 
 
+def seen_rings(
+    rng: np.random.Generator, radii_mm: tuple[float, ...]
+) -> tuple[NDArray, dict[int, NDArray], NDArray]:
+    """Concentric circles of ``radii_mm`` seen through a random homography (tilts up to about
+    60 deg, 600 mm away, f 900 px): its inverse, the ring conics and the image of O."""
+    H = np.array([[900.0, 0, 320], [0, 900.0, 240], [0, 0, 1]]) @ np.column_stack(
+        [*cv2.Rodrigues(rng.uniform(-0.6, 0.6, 3))[0][:, :2].T, [0.0, 0.0, 600.0]]
+    )
+    Hinv = np.linalg.inv(H)
+    conics = {k: Hinv.T @ np.diag([1.0, 1.0, -r * r]) @ Hinv for k, r in enumerate(radii_mm)}
+    o = H @ np.array([0.0, 0.0, 1.0])
+    return Hinv, conics, o[:2] / o[2]
+
+
 def look_at_pose(
     distance_mm: float, tilt_deg: float, tilt_axis_deg: float, roll_deg: float, offset=(0, 0)
 ) -> NDArray:

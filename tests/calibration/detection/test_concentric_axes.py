@@ -17,6 +17,7 @@ from calibration.detection.concentric_axes import (
     conjugate_diameter,
 )
 from calibration.detection.concentric_rings import _pencil_centre
+from tests.calibration.synth_concentric import seen_rings
 
 
 def _circle(radius_px: float, centre=(320.0, 240.0)) -> np.ndarray:
@@ -107,26 +108,12 @@ def test_profiles_across_a_diameter_are_kept_clear_of_a_ring_running_beside_it()
     np.testing.assert_array_equal(clear_v, [True, True, True, True])
 
 
-def _seen_rings(
-    rng: np.random.Generator, radii_mm: tuple[float, ...]
-) -> tuple[np.ndarray, dict[int, np.ndarray], np.ndarray]:
-    """Concentric circles of ``radii_mm`` seen through a random homography (tilts up to about
-    60 deg, 600 mm away, f 900 px): its inverse, the ring conics and the image of O."""
-    H = np.array([[900.0, 0, 320], [0, 900.0, 240], [0, 0, 1]]) @ np.column_stack(
-        [*cv2.Rodrigues(rng.uniform(-0.6, 0.6, 3))[0][:, :2].T, [0.0, 0.0, 600.0]]
-    )
-    Hinv = np.linalg.inv(H)
-    conics = {k: Hinv.T @ np.diag([1.0, 1.0, -r * r]) @ Hinv for k, r in enumerate(radii_mm)}
-    o = H @ np.array([0.0, 0.0, 1.0])
-    return Hinv, conics, o[:2] / o[2]
-
-
 def test_the_conjugate_diameter_is_the_image_of_the_perpendicular_one() -> None:
     # Concentric circles on a plane seen through random homographies (tilts up to ~60 deg):
     # from the image of one diameter and the ring conics, the other diameter's image.
     rng = np.random.default_rng(21)
     for _ in range(20):
-        Hinv, conics, o = _seen_rings(rng, (30.0, 45.0, 60.0))
+        Hinv, conics, o = seen_rings(rng, (30.0, 45.0, 60.0))
         a = rng.uniform(0, np.pi)
         d1 = np.array([-np.sin(a), np.cos(a), 0.0])  # the diameter along (cos a, sin a)
         d2 = np.array([np.cos(a), np.sin(a), 0.0])  # the perpendicular one
@@ -144,7 +131,7 @@ def test_conjugacy_is_zero_for_the_diameters_and_large_for_another_line_through_
     # not, and the larger the turn the further off.
     rng = np.random.default_rng(22)
     for _ in range(20):
-        Hinv, conics, o = _seen_rings(rng, (30.0, 60.0))
+        Hinv, conics, o = seen_rings(rng, (30.0, 60.0))
         a = rng.uniform(0, np.pi)
 
         def diameter(angle: float, Hinv: np.ndarray = Hinv) -> np.ndarray:
