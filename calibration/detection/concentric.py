@@ -40,7 +40,8 @@ measures is never exposed to their weaker checks.
 Steps 1-3 are in :mod:`calibration.detection.concentric_rays` (the candidate centres in
 :mod:`calibration.detection.concentric_centre`), 4-5 in
 :mod:`calibration.detection.concentric_rings` (the diameters in
-:mod:`calibration.detection.concentric_axes`) and 6 in
+:mod:`calibration.detection.concentric_axes`, the checks of the rings along the rays and of
+the diameters' conjugacy in :mod:`calibration.detection.concentric_fine`) and 6 in
 :mod:`calibration.detection.concentric_labels`. :func:`detect_concentric` here runs the
 passes over the closing scales and the coarse stage (steps 1-4);
 :func:`~calibration.detection.concentric_fine.measure_and_label` runs the fine stage

@@ -83,8 +83,9 @@ MIN_CONJUGATE_EVIDENCE = 0.8
 #: the median was 0.003 and 99 % were within 0.053; of the three beyond 0.15, two held a
 #: ring whose conic was off where it was not seen (1.23: cut by the image's corner; 0.32:
 #: the innermost, seen over a short arc, naming a point 2.1 px off), one a noisy ring
-#: (0.17). The modern cell's lens (k1 = -0.12) gave at most 0.017. Rings whose coarse conics were a ring off over a sector (a faint, blurred view
-#: with a stripe), refined into mixtures of two neighbours' lines, gave 0.21.
+#: (0.17). The modern cell's lens (k1 = -0.12) gave at most 0.017. Rings whose coarse
+#: conics were a ring off over a sector (a faint, blurred view with a stripe), refined into
+#: mixtures of two neighbours' lines, gave 0.21.
 MAX_RAY_DEPARTURE = 0.15
 
 #: How well the rings left must agree along the rays (:data:`MAX_RAY_DEPARTURE`) when one
@@ -153,6 +154,8 @@ def ray_departure(
 
 
 def _worst_departure(conics: dict[int, NDArray], radii: NDArray, c: NDArray) -> float:
+    # Rays with fewer than three crossings say nothing (NaN); the rings reaching here are
+    # ellipses around c that passed the pencil's checks, so most rays cross them all.
     departure = ray_departure(conics, radii, c)
     return float(np.nanmax(departure)) if np.isfinite(departure).any() else 0.0
 

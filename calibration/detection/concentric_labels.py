@@ -3,7 +3,7 @@
 Step 6 of :mod:`calibration.detection.concentric`: which diameter end is A, decided by the
 orientation disc (:func:`_label_by_marker`); and the crossings of rings with the diameter
 lines, refined by local quadratic fits where lens distortion bends the curves
-(:func:`_local_crossing`).
+(:func:`_local_crossing`), named by ring and axis (:func:`_named_points`).
 """
 
 from __future__ import annotations

@@ -95,6 +95,16 @@ def test_one_ring_off_the_radii_is_dropped_and_the_rest_kept() -> None:
     assert np.nanmax(ray_departure(conics_kept, np.array(RADII_MM), o)) <= AGREED_RAY_DEPARTURE
 
 
+def test_no_ring_is_dropped_from_three() -> None:
+    # Two rings say nothing along a ray: of three, one off the radii refuses the view.
+    rng = np.random.default_rng(11)
+    Hinv, conics, o = seen_rings(rng, RADII_MM)
+    three = {k: conics[k] for k in (3, 4, 5)}
+    three[4] = _mixed(Hinv, 4, (1.0, 1.0 + np.pi))
+    assert np.nanmax(ray_departure(three, np.array(RADII_MM), o)) > MAX_RAY_DEPARTURE
+    assert isinstance(_rings_along_rays(_rings(three), np.array(RADII_MM), o, min_rings=3), str)
+
+
 def test_right_rings_are_kept_as_they_are() -> None:
     rng = np.random.default_rng(10)
     _, conics, o = seen_rings(rng, RADII_MM)
