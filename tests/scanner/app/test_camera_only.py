@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 import calibration.pipeline as calibration_pipeline
+import scanner.app.stages.calibration as calibration_stages
 from scanner.app import stages
 from scanner.app.cli import build_parser, main
 from scanner.core.conventions import RotationConvention, angle_between_rotations_deg
@@ -139,11 +140,19 @@ def test_laser_origin_from_the_drawing_is_written_when_it_lies_on_the_plane(
         written.quality.record["laser_origin"]["std_mm"] <= calibration_pipeline.MAX_ORIGIN_STD_MM
     )
     assert written.covariance is not None and written.covariance.laser_origin_mm2 is None
-    # The same calibration again, with an origin 40 mm off the plane: refused.
-    monkeypatch.setattr(stages, "calibrate_session", lambda *args, **kwargs: run.result)
+    # The same calibration again (not recomputed: calibrate_session is replaced where the
+    # calibrate stage looks it up), with an origin 40 mm off the plane: refused.
+    calls = []
+
+    def calibrated_before(*args, **kwargs):
+        calls.append(args)
+        return run.result
+
+    monkeypatch.setattr(calibration_stages, "calibrate_session", calibrated_before)
     off = tmp_path / "off.json"
     with pytest.raises(ValueError, match="off it"):
         stages.calibrate(session, off, report=None, laser_origin_cam_mm=(10.0, -100.0, -5.0))
+    assert len(calls) == 1, "the stand-in calibration was not the one run"
     assert not off.exists()
 
 
