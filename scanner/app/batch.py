@@ -17,11 +17,14 @@ stripe mode the folder was made with; a restart with other inputs is refused unl
 The runner writes ``DIR/results.csv`` (every session's ``measure.csv`` rows, the session's name
 first; a session that could not be measured gets ``error`` rows) and ``DIR/summary.json``;
 ``scanner batch --compare`` adds ``DIR/compare.csv``.
+
+One session's task is in :mod:`scanner.app.batch_session`, the Dask client and the run of the
+tasks on it in :mod:`scanner.app.batch_cluster`; this module checks the inputs, runs the batch
+and writes its files.
 """
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import glob
 import hashlib
@@ -29,20 +32,28 @@ import io
 import json
 import logging
 import os
-import socket
 import time
-import uuid
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Literal
 
-from distributed import Client, Future, LocalCluster, get_worker
-
 from metrology.plan import Plan, load_plan
 from scanner import __version__
-from scanner.app import stages
+from scanner.app.batch_cluster import BatchState, ClusterInfo, _run_on_cluster, dask_client
+from scanner.app.batch_session import (
+    RESULT_COLUMNS,
+    ResultRow,
+    SessionJob,
+    SessionOutcome,
+    Verdict,
+    _report_files,
+    outputs_complete,
+    process_session,
+    stored_outcome,
+    verdict_of,
+)
 from scanner.core.config import resolve_config
 from scanner.core.fileio import (
     InputError,
@@ -50,12 +61,7 @@ from scanner.core.fileio import (
     commit_together,
     write_json_atomic,
 )
-from scanner.core.tolerance import (
-    STATUS_ERROR,
-    ToleranceRow,
-    spreadsheet_safe,
-    verdict_of_statuses,
-)
+from scanner.core.tolerance import STATUS_ERROR, ToleranceRow, spreadsheet_safe
 from scanner.formats.calibration_file import read_calibration
 from scanner.formats.layout import JobLayout
 from scanner.scanning.pipeline import ScanOptions
@@ -82,14 +88,11 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-#: The columns of ``DIR/results.csv`` (interfaces.md §6).
-RESULT_COLUMNS = tuple("session name unit nominal actual deviation lower upper status".split())
 MANIFEST_FORMAT = "scanner-batch/1"
-Verdict = Literal["pass", "fail", "not proven", "error", "absent"]
 
 
 # --------------------------------------------------------------------------------------------
-# what a batch is given and what each task returns
+# what a batch is given and what it writes
 
 
 @dataclass(frozen=True)
@@ -128,65 +131,6 @@ class BatchRequest:
 
 
 @dataclass(frozen=True)
-class SessionJob:
-    """One task: scan ``session_dir`` and measure the cloud into ``layout.root``."""
-
-    name: str
-    session_dir: Path
-    calibration: Path
-    plan: Path
-    layout: JobLayout
-    options: ScanOptions
-    plan_rows: tuple[ResultRow, ...]
-    """The plan's measurements as ``error`` rows, for a session that could not be measured."""
-
-
-@dataclass(frozen=True)
-class ResultRow:
-    """One measurement of one session, as text exactly as ``scanner measure`` wrote it."""
-
-    name: str
-    unit: str
-    nominal: str
-    actual: str
-    deviation: str
-    lower: str
-    upper: str
-    status: str
-
-    @classmethod
-    def from_tolerance_row(cls, row: ToleranceRow) -> ResultRow:
-        """A row written the way :func:`metrology.report.write_rows_csv` writes it."""
-        j = row.to_json()
-        text = {k: "" if j[k] is None else str(j[k]) for k in RESULT_COLUMNS[1:]}
-        return cls(**text)
-
-
-@dataclass(frozen=True)
-class SessionOutcome:
-    """What became of one session.
-
-    ``ok`` is False when the session could not be scanned or measured, or when a feature of
-    the plan could not be fitted (``reason`` says which and why; its outputs are still
-    written). ``reused``: complete outputs of an earlier run were kept.
-    """
-
-    name: str
-    path: str
-    ok: bool
-    reason: str = ""
-    rows: tuple[ResultRow, ...] = ()
-    points: int | None = None
-    seconds: float = 0.0
-    worker: str = ""
-    reused: bool = False
-
-    @property
-    def verdict(self) -> Verdict:
-        return verdict_of(self.rows)
-
-
-@dataclass(frozen=True)
 class FailedSession:
     session: str
     reason: str
@@ -204,17 +148,6 @@ class SessionRecord:
     seconds: float
     points: int | None
     worker: str
-
-
-@dataclass(frozen=True)
-class ClusterInfo:
-    """The Dask cluster a batch ran on."""
-
-    scheduler: str
-    dashboard: str | None
-    workers: int
-    threads: int
-    local: bool
 
 
 @dataclass(frozen=True)
@@ -252,108 +185,6 @@ class BatchRun:
     outcomes: tuple[SessionOutcome, ...]
     results_path: Path
     summary_path: Path
-
-
-def verdict_of(rows: Sequence[ResultRow]) -> Verdict:
-    """``absent`` without rows, else :func:`~scanner.core.tolerance.verdict_of_statuses`."""
-    return verdict_of_statuses({r.status for r in rows}) if rows else "absent"
-
-
-def _one_line(exc: BaseException) -> str:
-    text = " ".join(str(exc).split())
-    if isinstance(exc, ValueError | OSError) and text:
-        return text
-    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
-
-
-# --------------------------------------------------------------------------------------------
-# the task (runs on a Dask worker)
-
-
-def _read_rows(csv_path: Path) -> tuple[ResultRow, ...]:
-    with open(csv_path, encoding="utf-8", newline="") as fh:
-        return tuple(
-            ResultRow(**{k: row[k] for k in RESULT_COLUMNS[1:]}) for row in csv.DictReader(fh)
-        )
-
-
-@dataclass(frozen=True)
-class _StoredMeasure:
-    """What a restart needs from a session's ``measure.json``: points and failed fits."""
-
-    points: int | None
-    failed_fits: tuple[str, ...]
-
-    @classmethod
-    def read(cls, path: Path) -> _StoredMeasure:
-        data = json.loads(path.read_text(encoding="utf-8"))
-        failed = tuple(
-            f"feature {f['name']!r}: {f['fit'].get('reason', 'fit failed')}"
-            for f in data.get("features", [])
-            if not f.get("fit", {}).get("ok", True)
-        )
-        return cls(data.get("cloud", {}).get("n_points"), failed)
-
-
-def _report_files(layout: JobLayout) -> tuple[Path, Path, Path]:
-    return layout.measure, layout.measure.with_suffix(".csv"), layout.measure.with_suffix(".html")
-
-
-def outputs_complete(layout: JobLayout) -> bool:
-    """Whether a session folder holds the cloud and the whole measurement report."""
-    return all(p.is_file() for p in (layout.cloud, *_report_files(layout)))
-
-
-def stored_outcome(
-    job: SessionJob, *, reused: bool, seconds: float = 0.0, worker: str = ""
-) -> SessionOutcome:
-    """A session's outcome read back from its complete outputs."""
-    json_path, csv_path, _ = _report_files(job.layout)
-    stored = _StoredMeasure.read(json_path)
-    return SessionOutcome(
-        name=job.name,
-        path=str(job.session_dir),
-        ok=not stored.failed_fits,
-        reason="; ".join(stored.failed_fits),
-        rows=_read_rows(csv_path),
-        points=stored.points,
-        seconds=seconds,
-        worker=worker,
-        reused=reused,
-    )
-
-
-def _failed_outcome(job: SessionJob, reason: str, seconds: float, worker: str) -> SessionOutcome:
-    return SessionOutcome(
-        name=job.name,
-        path=str(job.session_dir),
-        ok=False,
-        reason=reason,
-        rows=job.plan_rows,
-        seconds=seconds,
-        worker=worker,
-    )
-
-
-def process_session(job: SessionJob) -> SessionOutcome:
-    """Scan and measure one session through the stage layer (a Dask task; never raises).
-
-    The report files are removed first, so they are complete only once this run's are.
-    """
-    t0 = time.perf_counter()
-    try:
-        worker = str(get_worker().address)
-    except ValueError:  # called outside a Dask worker
-        worker = socket.gethostname()
-    try:
-        for stale in _report_files(job.layout):
-            stale.unlink(missing_ok=True)
-        stages.scan([job.session_dir], job.calibration, job.layout.cloud, options=job.options)
-        stages.measure(job.layout.cloud, job.plan, job.layout.measure)
-        return stored_outcome(job, reused=False, seconds=time.perf_counter() - t0, worker=worker)
-    except Exception as exc:
-        log.info("session %s failed: %s", job.name, _one_line(exc))
-        return _failed_outcome(job, _one_line(exc), time.perf_counter() - t0, worker)
 
 
 # --------------------------------------------------------------------------------------------
@@ -507,109 +338,6 @@ def _record_manifest(path: Path, manifest: BatchManifest, redo: Sequence[Session
 
 
 # --------------------------------------------------------------------------------------------
-# the cluster
-
-
-def local_cores() -> int:
-    """The cores this process may run on."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not Linux
-        return os.cpu_count() or 1
-
-
-@contextlib.contextmanager
-def dask_client(
-    scheduler: str | None,
-    workers: int | None = None,
-    dashboard_address: str = "127.0.0.1:8787",
-    connect_timeout_s: float = 20.0,
-) -> Iterator[tuple[Client, ClusterInfo]]:
-    """A client of the scheduler at ``scheduler``, or of a local cluster of ``workers``
-    processes with one thread each (default: one per core). The local cluster listens on
-    127.0.0.1 only and is shut down on leaving."""
-    cluster: LocalCluster | None = None
-    if scheduler:
-        try:
-            client = Client(scheduler, timeout=connect_timeout_s)
-        except (OSError, TimeoutError) as exc:
-            raise OSError(
-                f"{scheduler}: cannot reach the Dask scheduler ({_one_line(exc)})"
-            ) from None
-        try:
-            client.wait_for_workers(1, timeout=connect_timeout_s)
-        except (OSError, TimeoutError):
-            client.close()
-            raise OSError(
-                f"{scheduler}: no Dask worker joined the scheduler within {connect_timeout_s:g} s"
-            ) from None
-    else:
-        cluster = LocalCluster(
-            n_workers=workers or local_cores(),
-            threads_per_worker=1,
-            processes=True,
-            host="127.0.0.1",
-            dashboard_address=dashboard_address,
-        )
-        client = Client(cluster)
-    try:
-        nthreads = client.nthreads()
-        services = client.scheduler_info().get("services", {})
-        info = ClusterInfo(
-            scheduler=str(client.scheduler.address),
-            dashboard=client.dashboard_link if "dashboard" in services else None,
-            workers=len(nthreads),
-            threads=sum(nthreads.values()),
-            local=cluster is not None,
-        )
-        yield client, info
-    finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
-
-
-def _load(client: Client, keys: set[str]) -> tuple[int, int] | None:
-    """``(workers, running)``: workers in the cluster, and tasks of ``keys`` executing now
-    (per worker at most its threads). None when the scheduler does not answer."""
-    try:
-        processing = client.processing()
-        nthreads = client.nthreads()
-    except (OSError, TimeoutError):  # pragma: no cover - the scheduler went away
-        return None
-    running = sum(
-        min(sum(k in keys for k in ks), nthreads.get(w, 1)) for w, ks in processing.items()
-    )
-    return len(nthreads), running
-
-
-# --------------------------------------------------------------------------------------------
-# progress
-
-
-@dataclass(frozen=True)
-class BatchState:
-    """Where a running batch is, for a progress display.
-
-    ``done`` and ``failed`` count every session settled so far, ``reused`` ones (complete
-    outputs of an earlier run) included; ``running``: tasks executing now (None: unknown).
-    """
-
-    total: int
-    reused: int
-    done: int
-    failed: int
-    running: int | None
-    elapsed_s: float
-
-    @property
-    def seconds_left(self) -> float | None:
-        """This run's throughput so far applied to the sessions left (None before the first)."""
-        processed, left = self.done - self.reused, self.total - self.done
-        return self.elapsed_s / processed * left if processed > 0 and left else None
-
-
-# --------------------------------------------------------------------------------------------
 # results and summary
 
 
@@ -668,66 +396,6 @@ def _summary(
 
 # --------------------------------------------------------------------------------------------
 # the run
-
-
-def _outcome_of(future: Future, job: SessionJob) -> SessionOutcome:
-    try:
-        outcome = future.result()
-    except Exception as exc:  # the worker died (KilledWorker) or the task was cancelled
-        return _failed_outcome(job, f"task lost on the cluster: {_one_line(exc)}", 0.0, "")
-    if not isinstance(outcome, SessionOutcome):  # pragma: no cover - a foreign task result
-        return _failed_outcome(job, f"unexpected task result {type(outcome).__name__}", 0.0, "")
-    return outcome
-
-
-def _run_on_cluster(
-    client: Client,
-    jobs: Sequence[SessionJob],
-    settled: dict[str, SessionOutcome],
-    total: int,
-    on_progress: Callable[[BatchState], None] | None,
-    poll_s: float = 0.5,
-    no_worker_timeout_s: float = 120.0,
-) -> None:
-    """Submit one task per job; add each outcome to ``settled`` as it arrives.
-
-    Should the cluster lose every worker for ``no_worker_timeout_s``, the sessions left are
-    recorded as failed rather than waited for forever.
-    """
-    t0 = last_worker = time.perf_counter()
-    reused = len(settled)
-    token = uuid.uuid4().hex[:8]
-    futures = {
-        client.submit(process_session, job, key=f"batch-{job.name}-{token}", pure=False): job
-        for job in jobs
-    }
-    pending = set(futures)
-    try:
-        while pending:
-            for f in [f for f in pending if f.done()]:
-                pending.discard(f)
-                outcome = _outcome_of(f, futures[f])
-                settled[outcome.name] = outcome
-            load = _load(client, {f.key for f in pending}) if pending else (1, 0)
-            now = time.perf_counter()
-            if load is None or load[0] > 0:
-                last_worker = now
-            elif now - last_worker > no_worker_timeout_s:
-                reason = f"no Dask worker left in the cluster for {no_worker_timeout_s:g} s"
-                log.warning("%s: %d session(s) not processed", reason, len(pending))
-                client.cancel(list(pending))
-                for f in pending:
-                    settled[futures[f].name] = _failed_outcome(futures[f], reason, 0.0, "")
-                pending.clear()
-            if on_progress is not None:
-                failed = sum(not o.ok for o in settled.values())
-                running = None if load is None else load[1]
-                on_progress(BatchState(total, reused, len(settled), failed, running, now - t0))
-            if pending:
-                time.sleep(poll_s)
-    except BaseException:
-        client.cancel(list(pending))
-        raise
 
 
 def run_batch(
