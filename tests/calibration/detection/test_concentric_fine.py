@@ -3,6 +3,7 @@ from O."""
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from calibration.detection.concentric_fine import (
@@ -110,3 +111,25 @@ def test_right_rings_are_kept_as_they_are() -> None:
     _, conics, o = seen_rings(rng, RADII_MM)
     rings = _rings(conics)
     assert _rings_along_rays(rings, np.array(RADII_MM), o, min_rings=3) is rings
+
+
+def test_the_departure_is_in_the_targets_ring_gaps_on_every_ray() -> None:
+    # One ring printed a fifth of a gap too large, seen 57 deg tilted, 400 mm away: the rings
+    # are twice as far apart in the image on the near side as on the far side, yet every ray
+    # must report the same departure in ring gaps (the local dt/dr scales it), or the
+    # check's tolerance would mean one thing near the camera and another far from it.
+    radii = np.array(RADII_MM)
+    drawn = radii.copy()
+    drawn[5] += 0.2 * float(np.min(np.diff(radii)))
+    tilted = np.column_stack(
+        [*cv2.Rodrigues(np.array([1.0, 0.0, 0.0]))[0][:, :2].T, [0.0, 0.0, 400.0]]
+    )
+    H = np.array([[900.0, 0, 320], [0, 900.0, 240], [0, 0, 1]]) @ tilted
+    Hinv = np.linalg.inv(H)
+    conics = {k: Hinv.T @ np.diag([1.0, 1.0, -r * r]) @ Hinv for k, r in enumerate(drawn)}
+    o = H @ np.array([0.0, 0.0, 1.0])
+    departure = ray_departure(conics, radii, o[:2] / o[2])
+    assert np.isfinite(departure).all()
+    # The fit of a and b takes up part of the 0.2 gap; what is left is the same on every ray.
+    assert 0.15 < departure.min() <= departure.max() < 0.2
+    assert departure.max() / departure.min() < 1.02
