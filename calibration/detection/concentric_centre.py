@@ -41,6 +41,8 @@ def _best_centre(
     size: tuple[int, int],
     ring0_hidden: bool,
     first_new: int = 0,
+    z_line: float = Z_LINE,
+    bundle_step_px: float = 0.0,
 ) -> _Centre | None:
     """The crossing of two long lines with the most ring crossings in order around it.
 
@@ -85,11 +87,19 @@ def _best_centre(
             axis_angles = [t1 + np.pi / 2, t1 - np.pi / 2, t2 + np.pi / 2, t2 - np.pi / 2]
             # a quarter of the rays first: most crossings of clutter lines stop here
             _, quick = _label_rays(
-                z_rays, c, radii, Z_LINE, axis_angles, n_rays=24, ring0_hidden=ring0_hidden
+                z_rays, c, radii, z_line, axis_angles, 24, ring0_hidden, bundle_step_px
             )
             if quick < 2 or (best is not None and 4 * quick < 0.5 * best[0]):
                 continue
-            _, good = _label_rays(z_rays, c, radii, Z_LINE, axis_angles, ring0_hidden=ring0_hidden)
+            _, good = _label_rays(
+                z_rays,
+                c,
+                radii,
+                z_line,
+                axis_angles,
+                ring0_hidden=ring0_hidden,
+                bundle_step_px=bundle_step_px,
+            )
             if best is None or good > best[0]:
                 best = (good, c, (l1, l2), axis_angles)
     if best is None or best[0] < 12:

@@ -165,9 +165,10 @@ def _rings_along_rays(
     radii: NDArray,
     c: NDArray,
     min_rings: int,
+    max_departure: float = MAX_RAY_DEPARTURE,
 ) -> dict[int, tuple[NDArray, NDArray, NDArray]] | str:
     """The measured rings, less one that alone breaks the radii's projectivity along the rays
-    from O (:func:`ray_departure`, :data:`MAX_RAY_DEPARTURE`), or why not.
+    from O (:func:`ray_departure`, beyond ``max_departure``), or why not.
 
     The ring dropped is the one without which the rest agree best, and only if they then
     agree as right views do (:data:`AGREED_RAY_DEPARTURE`) and at least three and
@@ -176,7 +177,7 @@ def _rings_along_rays(
     """
     conics = {k: v[1] for k, v in rings.items()}
     worst = _worst_departure(conics, radii, c)
-    if worst <= MAX_RAY_DEPARTURE:
+    if worst <= max_departure:
         return rings
     if len(rings) > max(3, min_rings):
         without = {
@@ -266,6 +267,7 @@ def measure_and_label(
     kernel: int,
     coarse_maps: tuple[NDArray, NDArray] | None,
     reached: Callable[[int], None],
+    max_departure: float = MAX_RAY_DEPARTURE,
 ) -> TargetObservation:
     """The target measured to sub-pixel, checked and labelled, from the coarse stage's pencil.
 
@@ -292,6 +294,10 @@ def measure_and_label(
     reached : callable
         Told each stage passed (4: rings and diameters measured, 5: tilt, 6: diameters'
         crossing and print), so the caller can show the most telling of several refusals.
+    max_departure : float
+        How far the rings may depart from the radii along the rays from O, in ring gaps
+        (:func:`ray_departure`): a last pass asks for :data:`AGREED_RAY_DEPARTURE`, as
+        well as right views agree.
 
     Returns
     -------
@@ -378,7 +384,11 @@ def measure_and_label(
         # pencil there, but not with the radii along the rays from O. Judged on the second
         # refinement's conics: the first's, measured along the coarse conics' normals, are
         # rougher (right views up to 0.24 ring gaps off).
-        along = rings if refinement == 0 else _rings_along_rays(rings, radii, c_new, s.min_rings)
+        along = (
+            rings
+            if refinement == 0
+            else _rings_along_rays(rings, radii, c_new, s.min_rings, max_departure)
+        )
         if isinstance(along, str):
             return TargetObservation.failed(along, size, KIND)
         if len(along) < len(rings):

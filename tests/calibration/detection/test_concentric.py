@@ -147,21 +147,28 @@ def test_no_target_gives_a_reason():
 
 
 def test_of_several_scales_the_refusal_that_got_furthest_is_reported(monkeypatch):
-    # each closing kernel fails at another stage, in all seven passes (the second with rays
+    # each closing kernel fails at another stage, in all eight passes (the second with rays
     # that may start at ring 1, the third with rings that may be fitted together, the fourth
     # and fifth with rays in bundles, the sixth from a centre moved to the most rings, the
-    # last from the crossings of weaker Hough lines): the user sees the most telling reason
-    # (two closing kernels for a 400 px image)
+    # seventh from the crossings of weaker Hough lines, the last with the crossings named
+    # again): the user sees the most telling reason (two closing kernels for a 400 px image)
     stages = iter([(1, "no ring pencil found: 1 rings fitted"), (5, "diameter line not printed"),
                    (3, "too oblique"), (5, "as far, second"), (1, "third"), (2, "third, too"),
                    (4, "fourth"), (5, "fourth, as far"), (1, "fifth"), (5, "fifth, as far"),
                    (2, "sixth"), (5, "sixth, as far"), (1, "seventh"),
-                   (5, "seventh, as far")])  # fmt: skip
+                   (5, "seventh, as far"), (3, "eighth"), (5, "eighth, as far")])  # fmt: skip
     passes = []
 
     def fake(img, target, s, kernel, size, state):
         passes.append(
-            (state.ring0_hidden, state.joint, state.bundle_z_line, state.climb, state.wide)
+            (
+                state.ring0_hidden,
+                state.joint,
+                state.bundle_z_line,
+                state.climb,
+                state.wide,
+                state.relabel,
+            )
         )
         state.progress, reason = next(stages)
         return TargetObservation.failed(reason, size, "concentric_circles")
@@ -171,33 +178,40 @@ def test_of_several_scales_the_refusal_that_got_furthest_is_reported(monkeypatch
     assert not obs
     assert obs.reason == "diameter line not printed"
     single = [
-        (False, False, 0.0, False, False),
-        (True, False, 0.0, False, False),
-        (False, True, 0.0, False, False),
+        (False, False, 0.0, False, False, False),
+        (True, False, 0.0, False, False, False),
+        (False, True, 0.0, False, False, False),
     ]
     bundles = [
-        (False, False, Z_LINE, False, False),
-        (False, False, concentric.BUNDLE_Z_LINE, False, False),
+        (False, False, Z_LINE, False, False, False),
+        (False, False, concentric.BUNDLE_Z_LINE, False, False, False),
     ]
-    climbed, wide = [(False, False, 0.0, True, False)], [(False, False, 0.0, False, True)]
-    assert passes == [p for p in single + bundles + climbed + wide for _ in range(2)]
+    climbed, wide = (
+        [(False, False, 0.0, True, False, False)],
+        [(False, False, 0.0, False, True, False)],
+    )
+    named_again = [(False, False, 0.0, False, False, True)]
+    assert passes == [p for p in single + bundles + climbed + wide + named_again for _ in range(2)]
     # a reason of a later pass that got further says where it comes from
     firsts = [(1, "first"), (2, "first, too")]
-    stages = iter(firsts + [(3, "second"), (6, "marker not found")] + [(1, "later")] * 10)
+    stages = iter(firsts + [(3, "second"), (6, "marker not found")] + [(1, "later")] * 12)
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert obs.reason == "marker not found (rays labelled from ring 1)"
-    stages = iter(firsts + [(2, "second"), (1, "second, too"), (4, "too oblique")] + [(1, "")] * 9)
+    stages = iter(firsts + [(2, "second"), (1, "second, too"), (4, "too oblique")] + [(1, "")] * 11)
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert obs.reason == "too oblique (rings fitted together)"
-    stages = iter(firsts + [(1, "later")] * 7 + [(3, "1 rings measured")] + [(1, "")] * 4)
+    stages = iter(firsts + [(1, "later")] * 7 + [(3, "1 rings measured")] + [(1, "")] * 6)
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert obs.reason == "1 rings measured (rays in bundles)"
-    stages = iter(firsts + [(1, "later")] * 9 + [(4, "2 rings measured")] + [(1, "")] * 2)
+    stages = iter(firsts + [(1, "later")] * 9 + [(4, "2 rings measured")] + [(1, "")] * 4)
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert obs.reason == "2 rings measured (centre moved to the most rings)"
-    stages = iter(firsts + [(1, "later")] * 11 + [(3, "1 rings measured")])
+    stages = iter(firsts + [(1, "later")] * 11 + [(3, "1 rings measured")] + [(1, "")] * 2)
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert obs.reason == "1 rings measured (weaker Hough lines tried)"
+    stages = iter(firsts + [(1, "later")] * 13 + [(3, "0 rings measured")])
+    obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
+    assert obs.reason == "0 rings measured (crossings named again)"
 
 
 def test_a_centre_off_the_rings_climbs_onto_the_diameter_and_one_in_noise_stays():

@@ -1,0 +1,219 @@
+"""The rays' ring crossings named again by one model of the whole target.
+
+Each ray from a candidate centre names its crossings on its own, by the projectivity of the
+radii that fits them best (:func:`~calibration.detection.ray_kernels.label_rays`). Where the
+print is faint and a ray misses the inner rings, or the candidate centre is off O, a
+projectivity fits the crossings as well a ring or two off, and whole sectors of rays are
+named so: every ring's conic is then fitted to a mixture of rings (randomised views 16:11 and
+19:76, whose fine stage measures them right from the true conics). Together the crossings pin
+the target: the image of concentric circles is one homography's, seven parameters for every
+ring. :func:`relabelled_pencil` fits it robustly to the crossings as named, names each
+crossing by the ring nearest it under the fit, and fits again until the names settle.
+
+The detector's last pass only (:mod:`calibration.detection.concentric`): every view another
+pass measures keeps its measurement, and what this pass proposes is judged by the fine stage's
+checks like any other pencil.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import least_squares
+
+from calibration.detection.concentric_rings import MIN_CONIC_POINTS
+
+__all__ = ["relabelled_pencil"]
+
+#: A crossing is named by the ring nearest it under the fit if it is within this fraction of
+#: the smallest ring gap of it (a crossing a ring off lies a whole gap away); others are left
+#: out of the next fit.
+NAME_FRACTION = 0.3
+
+#: Of the crossings the rays found, at least this share must be named in the end: the model
+#: must explain most of what was seen, not a corner of it.
+MIN_NAMED_SHARE = 0.5
+
+#: Rounds of fitting and naming at most (the names settle in two or three).
+MAX_ROUNDS = 8
+
+#: Rays whose crossings start a draw, and draws: with half the rays named wrong, 40 draws of
+#: four miss a draw of right rays once in 200.
+SAMPLE_RAYS = 4
+SAMPLES = 40
+
+
+def target_from_image(params: NDArray) -> NDArray:
+    """The homography ``(3, 3)`` from the image to the target plane (mm) of the parameters.
+
+    ``params = (a, b, d, ox, oy, vx, vy)``: the image point ``p`` maps to
+    ``A (p - o) / (1 + v . (p - o))`` with ``A = [[a, b], [0, d]]`` (the target's rotation
+    about O is not seen by concentric rings: ``A`` is upper triangular), ``o`` the image of O.
+    """
+    a, b, d, ox, oy, vx, vy = (float(x) for x in params)
+    lin = np.array([[a, b], [0.0, d]])
+    o = np.array([ox, oy])
+    v = np.array([vx, vy])
+    g = np.zeros((3, 3))
+    g[:2, :2] = lin
+    g[:2, 2] = -lin @ o
+    g[2, :2] = v
+    g[2, 2] = 1.0 - float(v @ o)
+    return g
+
+
+def _radius_mm(params: NDArray, pts: NDArray) -> tuple[NDArray, NDArray]:
+    """Each point's radius on the target (mm) under the model, and its distance from o (px)."""
+    q = pts - params[3:5]
+    w = 1.0 + q @ params[5:7]
+    x = q @ np.array([[params[0], 0.0], [params[1], params[2]]]) / w[:, None]
+    return np.linalg.norm(x, axis=1), np.linalg.norm(q, axis=1)
+
+
+def _fit(params: NDArray, pts: NDArray, r_mm: NDArray, scale_px: float | None) -> NDArray | None:
+    """The model fitted to ``pts`` named ``r_mm``: robustly (Cauchy, ``scale_px``) or, for
+    ``None``, by plain least squares."""
+
+    def residual_px(p: NDArray) -> NDArray:
+        rho, q = _radius_mm(p, pts)
+        # (rho - r) mm along the ray from o, in px: times the local px per mm
+        return (rho - r_mm) * q / np.maximum(rho, 1e-9)
+
+    if scale_px is None:
+        fit = least_squares(residual_px, params, x_scale="jac")
+    else:
+        fit = least_squares(residual_px, params, loss="cauchy", f_scale=scale_px, x_scale="jac")
+    if not fit.success or not np.all(np.isfinite(fit.x)):
+        return None
+    return fit.x
+
+
+def _affine_start(pts: NDArray, r_mm: NDArray, c: NDArray) -> NDArray | None:
+    """The model without its projective part, linear in ``M = A^T A``, ``M o`` and a constant
+    (as :func:`~calibration.detection.concentric_rings.concentric_affine_conics` starts)."""
+    x, y = (pts - c).T
+    a = np.column_stack([x * x, 2 * x * y, y * y, -2 * x, -2 * y, np.ones_like(x)])
+    norm = np.linalg.norm(a, axis=0)
+    if np.any(norm == 0) or not np.all(np.isfinite(a)):
+        return None
+    lin = np.linalg.lstsq(a / norm, r_mm * r_mm, rcond=None)[0] / norm
+    m = np.array([[lin[0], lin[1]], [lin[1], lin[2]]])
+    if np.linalg.det(m) <= 0 or m[0, 0] <= 0:
+        return None
+    upper = np.linalg.cholesky(m).T  # M = A^T A, A upper triangular
+    o = c + np.linalg.solve(m, lin[3:5])
+    return np.array([upper[0, 0], upper[0, 1], upper[1, 1], o[0], o[1], 0.0, 0.0])
+
+
+def _settle(
+    params: NDArray, pts: NDArray, labels: NDArray, radii: NDArray
+) -> tuple[NDArray, NDArray, NDArray] | None:
+    """From a model, fit and name the crossings in turn until the names settle: the model,
+    every crossing's ring and whether it is named (within :data:`NAME_FRACTION` of a gap)."""
+    gap_mm = float(np.min(np.diff(radii)))
+    rho, q = _radius_mm(params, pts)
+    scale_px = 0.25 * gap_mm * float(np.median(q / np.maximum(rho, 1e-9)))
+    named = np.abs(rho - radii[labels]) < NAME_FRACTION * gap_mm
+    for _ in range(MAX_ROUNDS):
+        if named.sum() < MIN_NAMED_SHARE * len(pts):
+            break
+        fitted = _fit(params, pts[named], radii[labels[named]], scale_px)
+        if fitted is None:
+            return None
+        params = fitted
+        rho, _ = _radius_mm(params, pts)
+        nearest = np.argmin(np.abs(rho[:, None] - radii[None, :]), axis=1)
+        near = np.abs(rho - radii[nearest]) < NAME_FRACTION * gap_mm
+        if np.array_equal(nearest[near], labels[near]) and np.array_equal(near, named):
+            break
+        labels, named = np.where(near, nearest, labels), near
+    return params, labels, named
+
+
+def relabelled_pencil(
+    per_ring: list[list[tuple[float, NDArray]]], radii: NDArray, c: NDArray, min_rings: int
+) -> tuple[dict[int, NDArray], NDArray] | str:
+    """Ring conics and the image of O from one homography fitted to every ray crossing.
+
+    Rays are named whole, so they are sampled whole: the homography of a few rays' crossings
+    (:data:`SAMPLE_RAYS`, :data:`SAMPLES` draws, seeded) that agrees with the most crossings
+    as named starts the fit; then the fit and the naming alternate.
+
+    Parameters
+    ----------
+    per_ring : list of list of (float, ndarray, shape (2,))
+        For every ring of the spec, the (ray angle, crossing px) the rays named it at
+        (:func:`~calibration.detection.concentric_rays._label_rays`).
+    radii : ndarray, shape (K,)
+        The spec's ring radii, mm.
+    c : ndarray, shape (2,)
+        Where the rays came from (px).
+    min_rings : int
+        Fewest rings, each named at :data:`MIN_CONIC_POINTS` crossings or more over a quarter
+        turn, for a pencil.
+
+    Returns
+    -------
+    tuple of (dict of int to ndarray, shape (3, 3); ndarray, shape (2,)), or str
+        The image conic of each such ring (members of one pencil of concentric circles by
+        construction) and ``o``, px; or why not.
+    """
+    radii = np.asarray(radii, dtype=np.float64)
+    rows = [(a, p, k) for k, ring in enumerate(per_ring) for a, p in ring]
+    if len(rows) < min_rings * MIN_CONIC_POINTS:
+        return f"no ring pencil found: {len(rows)} ring crossings to name, too few"
+    ray_angle = np.array([r[0] for r in rows])
+    pts = np.array([r[1] for r in rows], dtype=np.float64).reshape(-1, 2)
+    labels = np.array([r[2] for r in rows], dtype=np.int64)
+    rays, ray_of = np.unique(ray_angle, return_inverse=True)
+    gap_mm = float(np.min(np.diff(radii)))
+    rng = np.random.default_rng(0)
+    # The best draw of each kind: affine, and with the perspective (an affine model is a ring
+    # gap off over a tilted target; on a nearly frontal one a few noisy rays pin the
+    # perspective badly and it may bend to a sector named wrong). Both are followed through
+    # and the one that names more crossings kept.
+    best: list[tuple[int, NDArray] | None] = [None, None]
+    for _ in range(SAMPLES if len(rays) > SAMPLE_RAYS else 1):
+        pick = rng.choice(len(rays), size=min(SAMPLE_RAYS, len(rays)), replace=False)
+        mine = np.isin(ray_of, pick)
+        affine = _affine_start(pts[mine], radii[labels[mine]], c)
+        if affine is None:
+            continue
+        for kind, start in enumerate((affine, _fit(affine, pts[mine], radii[labels[mine]], None))):
+            if start is None:
+                continue
+            rho, _ = _radius_mm(start, pts)
+            agree = int(np.sum(np.abs(rho - radii[labels]) < NAME_FRACTION * gap_mm))
+            if best[kind] is None or agree > best[kind][0]:
+                best[kind] = (agree, start)
+    settled = [_settle(b[1], pts, labels, radii) for b in best if b is not None]
+    settled = [s for s in settled if s is not None]
+    if not settled:
+        return "no ring pencil found: the ring crossings fit no concentric ellipses"
+    params, labels, named = max(settled, key=lambda s: int(s[2].sum()))
+    if named.sum() < MIN_NAMED_SHARE * len(pts):
+        return (
+            f"no ring pencil found: one homography names {int(named.sum())} of {len(pts)} ring "
+            "crossings"
+        )
+    g = target_from_image(params)
+    if abs(np.linalg.det(g)) < 1e-30 or params[0] <= 0 or params[2] <= 0:
+        return "no ring pencil found: the ring crossings fit no homography"
+    o = params[3:5].copy()
+    conics: dict[int, NDArray] = {}
+    for k in range(len(radii)):
+        mine = pts[named & (labels == k)]
+        if len(mine) < MIN_CONIC_POINTS:
+            continue
+        turn = np.sort(np.arctan2(mine[:, 1] - o[1], mine[:, 0] - o[0]))
+        widest_gap = np.max(np.diff(np.concatenate([turn, turn[:1] + 2 * np.pi])))
+        if 2 * np.pi - widest_gap < np.pi / 2:
+            continue
+        conic = g.T @ np.diag([1.0, 1.0, -(radii[k] ** 2)]) @ g
+        conics[k] = conic / np.linalg.norm(conic)
+    if len(conics) < min_rings:
+        return (
+            f"no ring pencil found: {len(conics)} rings named over a quarter turn by one "
+            f"homography, expected >= {min_rings}"
+        )
+    return conics, o

@@ -1,0 +1,109 @@
+"""Ray crossings named again by one homography of the whole target."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from calibration.detection.concentric import _coarse_pencil
+from calibration.detection.concentric_relabel import relabelled_pencil
+from calibration.detection.concentric_rings import _conic_point_on_ray
+from tests.calibration.synth_concentric import seen_rings
+
+#: Equally spaced rings, as most printed targets have: a ray's crossings a ring or two off
+#: fit the radii's projectivity nearly as well as the right ones.
+RADII_MM = tuple(float(r) for r in np.linspace(30.0, 100.0, 8))
+
+
+def _crossings(
+    conics: dict[int, np.ndarray],
+    c: np.ndarray,
+    rng: np.random.Generator,
+    shifted: tuple[float, float],
+    shift: int,
+    noise_px: float = 0.3,
+) -> list[list[tuple[float, np.ndarray]]]:
+    """What the rays from ``c`` name: every ring's crossing on 96 rays, ``noise_px`` of noise
+    along the ray; on the rays in the sector ``shifted`` (rad) the inner ``shift`` rings are
+    missed and the rest named from ring 0 up, as a ray that misses faint inner rings does."""
+    angles = np.linspace(0, 2 * np.pi, 96, endpoint=False) + 0.013
+    dirs = np.column_stack([np.cos(angles), np.sin(angles)])
+    t = np.array([_conic_point_on_ray(conics[k], c, dirs) for k in sorted(conics)])  # (K, n)
+    t += rng.normal(0.0, noise_px, t.shape)
+    per_ring: list[list[tuple[float, np.ndarray]]] = [[] for _ in conics]
+    for j, a in enumerate(angles):
+        off = shift if shifted[0] <= a < shifted[1] else 0
+        for k in range(off, len(conics)):
+            per_ring[k - off].append((float(a), c + t[k, j] * dirs[j]))
+    return per_ring
+
+
+def _conic_error_px(conic: np.ndarray, truth: np.ndarray, c: np.ndarray) -> float:
+    """Largest distance along rays from ``c`` between two ring conics, px."""
+    angles = np.linspace(0, 2 * np.pi, 90, endpoint=False)
+    dirs = np.column_stack([np.cos(angles), np.sin(angles)])
+    return float(
+        np.max(np.abs(_conic_point_on_ray(conic, c, dirs) - _conic_point_on_ray(truth, c, dirs)))
+    )
+
+
+def test_a_sector_named_two_rings_off_is_named_right_again():
+    # A third of the rays missed the two inner rings (a faint print, view 16:11 of the
+    # randomised benchmark), and the rays start 1.5 px from O: every ring's own conic mixes
+    # two rings there. One homography of all crossings names them right.
+    rng = np.random.default_rng(3)
+    for _ in range(10):
+        _, conics, o = seen_rings(rng, RADII_MM)
+        c = o + rng.normal(0.0, 1.5, 2)
+        per_ring = _crossings(conics, c, rng, (1.0, 1.0 + 2 * np.pi / 3), 2)
+        found = relabelled_pencil(per_ring, np.array(RADII_MM), c, min_rings=3)
+        assert not isinstance(found, str), found
+        named, centre = found
+        assert np.linalg.norm(centre - o) < 0.3
+        assert sorted(named) == list(range(len(RADII_MM)))
+        for k, conic in named.items():
+            assert _conic_error_px(conic, conics[k], o) < 0.5, k
+
+
+def test_the_rings_own_conics_mix_the_rings_such_a_sector_names():
+    # Why the last pass exists: each ring's conic fitted to its crossings as named is no
+    # ring's (the coarse stage's pencil is refused, or is pixels off).
+    rng = np.random.default_rng(3)
+    _, conics, o = seen_rings(rng, RADII_MM)
+    c = o + rng.normal(0.0, 1.5, 2)
+    per_ring = _crossings(conics, c, rng, (1.0, 1.0 + 2 * np.pi / 3), 2)
+    own = _coarse_pencil(per_ring, np.array(RADII_MM), c, 3)
+    assert not isinstance(own, str), own  # a pencil is found, and it is not the rings'
+    worst = max(_conic_error_px(cn, conics[k], o) for k, cn in own[0].items())
+    assert worst > 5.0
+
+
+def test_rays_named_right_give_the_rings_back():
+    rng = np.random.default_rng(4)
+    _, conics, o = seen_rings(rng, RADII_MM)
+    per_ring = _crossings(conics, o, rng, (0.0, 0.0), 0, noise_px=0.1)
+    found = relabelled_pencil(per_ring, np.array(RADII_MM), o, min_rings=3)
+    assert not isinstance(found, str), found
+    assert np.linalg.norm(found[1] - o) < 0.05
+    for k, conic in found[0].items():
+        assert _conic_error_px(conic, conics[k], o) < 0.1
+
+
+def test_crossings_of_no_target_are_refused():
+    # Crossings of clutter: scattered points named by rays that fitted them somehow.
+    rng = np.random.default_rng(5)
+    c = np.array([320.0, 240.0])
+    per_ring = [
+        [(float(a), c + rng.uniform(20, 200) * np.array([np.cos(a), np.sin(a)])) for a in angles]
+        for angles in (rng.uniform(0, 2 * np.pi, 40) for _ in RADII_MM)
+    ]
+    found = relabelled_pencil(per_ring, np.array(RADII_MM), c, min_rings=3)
+    assert isinstance(found, str)
+    assert "no ring pencil found" in found
+
+
+def test_too_few_crossings_are_refused():
+    c = np.array([320.0, 240.0])
+    per_ring = [[(0.1, c + np.array([30.0 + 10 * k, 0.0]))] for k in range(len(RADII_MM))]
+    found = relabelled_pencil(per_ring, np.array(RADII_MM), c, min_rings=3)
+    assert isinstance(found, str)
+    assert "too few" in found
