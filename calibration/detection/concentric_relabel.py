@@ -42,6 +42,9 @@ MAX_ROUNDS = 8
 SAMPLE_RAYS = 4
 SAMPLES = 40
 
+#: The draws whose affine models agree best that are fitted with the perspective too.
+PERSPECTIVE_DRAWS = 5
+
 
 def target_from_image(params: NDArray) -> NDArray:
     """The homography ``(3, 3)`` from the image to the target plane (mm) of the parameters.
@@ -168,25 +171,37 @@ def relabelled_pencil(
     rays, ray_of = np.unique(ray_angle, return_inverse=True)
     gap_mm = float(np.min(np.diff(radii)))
     rng = np.random.default_rng(0)
-    # The best draw of each kind: affine, and with the perspective (an affine model is a ring
-    # gap off over a tilted target; on a nearly frontal one a few noisy rays pin the
-    # perspective badly and it may bend to a sector named wrong). Both are followed through
-    # and the one that names more crossings kept.
-    best: list[tuple[int, NDArray] | None] = [None, None]
+
+    def agreeing(model: NDArray) -> int:
+        rho, _ = _radius_mm(model, pts)
+        return int(np.sum(np.abs(rho - radii[labels]) < NAME_FRACTION * gap_mm))
+
+    # Affine models of the draws first (linear, cheap); the perspective fitted to the draws
+    # of the best few (an affine model is a ring gap off over a tilted target, but ranks the
+    # draws of right rays first). On a nearly frontal target a few noisy rays pin the
+    # perspective badly and it may bend to a sector named wrong: the best of each kind is
+    # followed through, and the one that names more crossings kept.
+    draws: list[tuple[int, NDArray, NDArray]] = []
     for _ in range(SAMPLES if len(rays) > SAMPLE_RAYS else 1):
         pick = rng.choice(len(rays), size=min(SAMPLE_RAYS, len(rays)), replace=False)
         mine = np.isin(ray_of, pick)
         affine = _affine_start(pts[mine], radii[labels[mine]], c)
-        if affine is None:
-            continue
-        for kind, start in enumerate((affine, _fit(affine, pts[mine], radii[labels[mine]], None))):
-            if start is None:
-                continue
-            rho, _ = _radius_mm(start, pts)
-            agree = int(np.sum(np.abs(rho - radii[labels]) < NAME_FRACTION * gap_mm))
-            if best[kind] is None or agree > best[kind][0]:
-                best[kind] = (agree, start)
-    settled = [_settle(b[1], pts, labels, radii) for b in best if b is not None]
+        if affine is not None:
+            draws.append((agreeing(affine), affine, mine))
+    draws.sort(key=lambda d: -d[0])
+    best: list[tuple[int, NDArray] | None] = [draws[0][:2] if draws else None, None]
+    for _, affine, mine in draws[:PERSPECTIVE_DRAWS]:
+        fitted = _fit(affine, pts[mine], radii[labels[mine]], None)
+        if fitted is not None and (best[1] is None or agreeing(fitted) > best[1][0]):
+            best[1] = (agreeing(fitted), fitted)
+    # (a start naming fewer than MIN_NAMED_SHARE never came to name more, over the randomised
+    # benchmark's views with and without a target: not followed, which halves the pass's
+    # time on views of clutter)
+    settled = [
+        _settle(b[1], pts, labels, radii)
+        for b in best
+        if b is not None and b[0] >= MIN_NAMED_SHARE * len(pts)
+    ]
     settled = [s for s in settled if s is not None]
     if not settled:
         return "no ring pencil found: the ring crossings fit no concentric ellipses"
