@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
-from calibration.detection.concentric_rings import MIN_CONIC_POINTS
+from calibration.detection.concentric_rings import MIN_CONIC_POINTS, concentric_affine_linear
 
 __all__ = ["relabelled_pencil"]
 
@@ -92,20 +92,14 @@ def _fit(params: NDArray, pts: NDArray, r_mm: NDArray, scale_px: float | None) -
 
 
 def _affine_start(pts: NDArray, r_mm: NDArray, c: NDArray) -> NDArray | None:
-    """The model without its projective part, linear in ``M = A^T A``, ``M o`` and a constant
-    (as :func:`~calibration.detection.concentric_rings.concentric_affine_conics` starts)."""
-    x, y = (pts - c).T
-    a = np.column_stack([x * x, 2 * x * y, y * y, -2 * x, -2 * y, np.ones_like(x)])
-    norm = np.linalg.norm(a, axis=0)
-    if np.any(norm == 0) or not np.all(np.isfinite(a)):
+    """The model without its projective part (:func:`concentric_affine_linear`), ``A`` the
+    upper triangular root of ``M = A^T A``."""
+    linear = concentric_affine_linear(pts - c, r_mm)
+    if linear is None:
         return None
-    lin = np.linalg.lstsq(a / norm, r_mm * r_mm, rcond=None)[0] / norm
-    m = np.array([[lin[0], lin[1]], [lin[1], lin[2]]])
-    if np.linalg.det(m) <= 0 or m[0, 0] <= 0:
-        return None
-    upper = np.linalg.cholesky(m).T  # M = A^T A, A upper triangular
-    o = c + np.linalg.solve(m, lin[3:5])
-    return np.array([upper[0, 0], upper[0, 1], upper[1, 1], o[0], o[1], 0.0, 0.0])
+    m, o = linear
+    upper = np.linalg.cholesky(m).T
+    return np.array([upper[0, 0], upper[0, 1], upper[1, 1], c[0] + o[0], c[1] + o[1], 0.0, 0.0])
 
 
 def _settle(
@@ -138,9 +132,10 @@ def relabelled_pencil(
 ) -> tuple[dict[int, NDArray], NDArray] | str:
     """Ring conics and the image of O from one homography fitted to every ray crossing.
 
-    Rays are named whole, so they are sampled whole: the homography of a few rays' crossings
-    (:data:`SAMPLE_RAYS`, :data:`SAMPLES` draws, seeded) that agrees with the most crossings
-    as named starts the fit; then the fit and the naming alternate.
+    Rays are named whole, so they are sampled whole (:data:`SAMPLE_RAYS`, :data:`SAMPLES`
+    draws, seeded): the draw whose affine model agrees with the most crossings as named, and
+    the best of :data:`PERSPECTIVE_DRAWS` draws fitted with the perspective, each start the
+    fit and the naming in turn; the one that names more crossings is kept.
 
     Parameters
     ----------
@@ -192,8 +187,9 @@ def relabelled_pencil(
     best: list[tuple[int, NDArray] | None] = [draws[0][:2] if draws else None, None]
     for _, affine, mine in draws[:PERSPECTIVE_DRAWS]:
         fitted = _fit(affine, pts[mine], radii[labels[mine]], None)
-        if fitted is not None and (best[1] is None or agreeing(fitted) > best[1][0]):
-            best[1] = (agreeing(fitted), fitted)
+        agree = agreeing(fitted) if fitted is not None else -1
+        if fitted is not None and (best[1] is None or agree > best[1][0]):
+            best[1] = (agree, fitted)
     # (a start naming fewer than MIN_NAMED_SHARE never came to name more, over the randomised
     # benchmark's views with and without a target: not followed, which halves the pass's
     # time on views of clutter)
@@ -204,7 +200,10 @@ def relabelled_pencil(
     ]
     settled = [s for s in settled if s is not None]
     if not settled:
-        return "no ring pencil found: the ring crossings fit no concentric ellipses"
+        share = max((b[0] for b in best if b is not None), default=0)
+        return (
+            f"no ring pencil found: the rays' best model names {share} of {len(pts)} ring crossings"
+        )
     params, labels, named = max(settled, key=lambda s: int(s[2].sum()))
     if named.sum() < MIN_NAMED_SHARE * len(pts):
         return (

@@ -31,6 +31,7 @@ __all__ = [
     "ConcentricDetectorSettings",
     "SplineWindow",
     "concentric_affine_conics",
+    "concentric_affine_linear",
 ]
 
 #: Fewest points a ring's conic is fitted to (five pin a conic; a few more outvote a bad one).
@@ -222,6 +223,22 @@ def _ellipse_ok(conic: NDArray, c: NDArray) -> bool:
     return float(x @ conic @ x) * float(np.trace(a)) < 0
 
 
+def concentric_affine_linear(pts: NDArray, r_mm: NDArray) -> tuple[NDArray, NDArray] | None:
+    """Concentric ellipses ``(p - o)^T M (p - o) = r^2`` through ``pts`` ``(N, 2)`` named
+    ``r_mm`` ``(N,)``, linear in ``M``, ``M o`` and a free constant: ``M`` ``(2, 2)`` and
+    ``o`` ``(2,)`` in the points' frame, or None where ``M`` is no ellipse's."""
+    x, y = pts.T
+    a = np.column_stack([x * x, 2 * x * y, y * y, -2 * x, -2 * y, np.ones_like(x)])
+    norm = np.linalg.norm(a, axis=0)
+    if np.any(norm == 0) or not np.all(np.isfinite(a)):
+        return None
+    lin = np.linalg.lstsq(a / norm, r_mm * r_mm, rcond=None)[0] / norm
+    m = np.array([[lin[0], lin[1]], [lin[1], lin[2]]])
+    if np.linalg.det(m) <= 0 or m[0, 0] <= 0:
+        return None
+    return m, np.linalg.solve(m, lin[3:5])
+
+
 def concentric_affine_conics(
     points_px: dict[int, NDArray], radii: NDArray, centre_px: NDArray, tol_px: float
 ) -> tuple[dict[int, NDArray], NDArray] | None:
@@ -272,15 +289,10 @@ def concentric_affine_conics(
     if not np.all(np.isfinite(pts)) or tol_px <= 0:
         return None
     r = np.concatenate([np.full(len(points_px[k]), radii[k]) for k in keys])
-    x, y = pts.T
-    a = np.column_stack([x * x, 2 * x * y, y * y, -2 * x, -2 * y, np.ones_like(x)])
-    norm = np.linalg.norm(a, axis=0)
-    if np.any(norm == 0):
+    linear = concentric_affine_linear(pts, r)
+    if linear is None:
         return None
-    lin = np.linalg.lstsq(a / norm, r * r, rcond=None)[0] / norm
-    m0 = np.array([[lin[0], lin[1]], [lin[1], lin[2]]])
-    if np.linalg.det(m0) <= 0 or m0[0, 0] <= 0:
-        return None
+    m0, o0 = linear
 
     def radial_px(params: NDArray) -> NDArray:
         m = np.array([[params[0], params[1]], [params[1], params[2]]])
@@ -289,7 +301,7 @@ def concentric_affine_conics(
         # (sqrt(q) - r) mm along the ray from o, in px: times |d| / sqrt(q)
         return (1.0 - r / np.sqrt(q)) * np.linalg.norm(d, axis=1)
 
-    x0 = np.array([lin[0], lin[1], lin[2], *np.linalg.solve(m0, lin[3:5])])
+    x0 = np.array([m0[0, 0], m0[0, 1], m0[1, 1], *o0])
     fit = least_squares(radial_px, x0, loss="soft_l1", f_scale=0.5 * tol_px, x_scale="jac")
     m = np.array([[fit.x[0], fit.x[1]], [fit.x[1], fit.x[2]]])
     if not fit.success or np.linalg.det(m) <= 0 or m[0, 0] <= 0:
