@@ -450,6 +450,7 @@ def _paper_result(
         rejected=sorted(rejected),
         paper=paper,
         n_residuals=int(res.size),
+        distortion_model="none",
     )
 
 

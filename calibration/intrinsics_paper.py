@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 from calibration.detection.conics import fit_line
 from calibration.detection.observations import TargetObservation
 
-__all__ = ["MIN_VIEWS", "PaperEstimate", "paper_intrinsics"]
+__all__ = ["MIN_VIEWS", "PaperEstimate", "paper_intrinsics", "view_vanishing_points"]
 
 #: Fewest views for the intrinsics, by either method.
 MIN_VIEWS = 4
@@ -121,6 +121,35 @@ def _axis_vanishing_point(obs: TargetObservation, axis: str) -> NDArray | None:
     (a, b, c), *_ = np.linalg.lstsq(A, t, rcond=None)
     base = o + b * 0.0
     return np.array([c * base[0] + a * d[0], c * base[1] + a * d[1], c])
+
+
+def view_vanishing_points(obs: TargetObservation) -> tuple[NDArray, NDArray, str] | None:
+    """The vanishing points (p, q) of one view's diameters x and y, and which rings gave them.
+
+    The paper's are the harmonic conjugates of O with respect to the largest ring's diameter
+    ends A, B and C, D (:attr:`TargetObservation.vanishing_points`). Where one of those ends
+    lies outside the image or is not found, every ring's ends along the diameters give them
+    (:func:`_axis_vanishing_point`): O is the midpoint of each ring's ends as it is of AB, so
+    the same projective property holds for each ring.
+
+    Parameters
+    ----------
+    obs : TargetObservation
+        A concentric-circles observation.
+
+    Returns
+    -------
+    tuple of (ndarray, shape (3,); ndarray, shape (3,); str) or None
+        p, q (homogeneous pixels) and ``"diameter_ends"`` or ``"all_rings"``; None where
+        neither way applies (fewer than four points on a diameter).
+    """
+    vp = obs.vanishing_points
+    if "p" in vp and "q" in vp:
+        return np.asarray(vp["p"], float), np.asarray(vp["q"], float), "diameter_ends"
+    p, q = _axis_vanishing_point(obs, "x"), _axis_vanishing_point(obs, "y")
+    if p is None or q is None:
+        return None
+    return p, q, "all_rings"
 
 
 def _paper_variants(obs_list: list[TargetObservation]) -> dict[str, PaperEstimate]:

@@ -39,6 +39,7 @@ from calibration.hand_eye import (
     paper_hand_eye,
 )
 from calibration.intrinsics import calibrate_intrinsics
+from calibration.intrinsics_paper import view_vanishing_points
 from calibration.laser_origin import LaserOriginResult, estimate_laser_origin, shadow_lines
 from calibration.light_plane import (
     LaserView,
@@ -661,6 +662,7 @@ def _paper_hand_eye(
     if lp is None:
         return HandEyeResult(False, "paper hand-eye: no light plane", method="paper")
     views: list[StripePointView] = []
+    sources: list[str] = []  # how each view's reference pose was found ("": none)
     for f in posed:
         obs = observations[f.id]
         st = stripes.get(f.id)
@@ -680,25 +682,53 @@ def _paper_hand_eye(
         p_cam = intersect_rays_with_plane(camera.rays(px.reshape(1, 2)), lp.normal, lp.d)[0]
         if not np.all(np.isfinite(p_cam)):
             continue
-        ct = None
-        if (
-            name == "O"
-            and all(k in obs.vanishing_points for k in ("p", "q"))
-            and all(k in obs.named_px for k in ("O", "A", "C"))
-        ):
-            pose = paper_pose(
-                camera,
-                obs.vanishing_points["p"],
-                obs.vanishing_points["q"],
-                obs.named_px["O"],
-                obs.named_px["A"],
-                obs.named_px["C"],
-                px,
-                lp,
-            )
-            ct = pose.cam_from_target if pose else None
+        ct, source = _paper_reference_pose(obs, camera, px, lp) if name == "O" else (None, "")
         views.append(StripePointView(f.id, name, f.base_from_flange, p_cam, ct))  # type: ignore[arg-type]
-    return paper_hand_eye(views, target.radius_mm)
+        sources.append(source)
+    # The paper's own reference pose (the largest ring's ends in view) wherever a view aimed at
+    # O gives one; the other rings' ends only where none does.
+    if "diameter_ends" in sources:
+        for v, source in zip(views, sources, strict=True):
+            if source != "diameter_ends":
+                v.cam_from_target = None
+    he = paper_hand_eye(views, target.radius_mm)
+    ref = next((i for i, v in enumerate(views) if v.cam_from_target is not None), None)
+    if he and ref is not None and sources[ref] == "all_rings":
+        he.warnings.append(
+            f"the reference view aimed at O (frame {views[ref].frame_id}) does not show both ends "
+            "of both diameters: its vanishing points and axes' signs come from every ring's ends"
+        )
+    return he
+
+
+def _paper_reference_pose(
+    obs: TargetObservation, camera: CameraModel, stripe_o_px: NDArray, plane: LightPlane
+) -> tuple[NDArray | None, str]:
+    """The paper's ``T_cwO`` of a view with the stripe on O (:func:`paper_pose`), and which
+    rings gave it: ``"diameter_ends"`` (the paper: A, B, C and D in view) or ``"all_rings"``
+    (:func:`view_vanishing_points`, and for the signs, where A or C is missing, the
+    outermost ring end found on that diameter); ``(None, "")`` where the view gives none."""
+    vps = view_vanishing_points(obs)
+    if vps is None or "O" not in obs.named_px:
+        return None, ""
+    p, q, source = vps
+    ends = []
+    for name, col in (("A", 0), ("C", 1)):
+        if name in obs.named_px:
+            ends.append(np.asarray(obs.named_px[name], dtype=np.float64))
+            continue
+        # The outermost point found on the axis; one on its negative half (the stripe may
+        # hide the positive one) mirrored through O, which keeps it on the same image line.
+        along = obs.points_target[:, col]
+        on_axis = (np.abs(obs.points_target[:, 1 - col]) < 1e-9) & (along != 0)
+        if not on_axis.any():
+            return None, ""
+        far = np.flatnonzero(on_axis)[np.argmax(np.abs(along[on_axis]))]
+        o_px = np.asarray(obs.named_px["O"], dtype=np.float64)
+        ends.append(obs.points_px[far] if along[far] > 0 else 2 * o_px - obs.points_px[far])
+        source = "all_rings"
+    pose = paper_pose(camera, p, q, obs.named_px["O"], ends[0], ends[1], stripe_o_px, plane)
+    return (pose.cam_from_target, source) if pose else (None, "")
 
 
 def _verdict(

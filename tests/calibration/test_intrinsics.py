@@ -33,6 +33,7 @@ def test_paper_method_is_exact_without_noise_and_distortion():
     obs = [synthetic_observation(T, K_TRUE, np.zeros(5), rng, 0.0) for T in poses(8, rng)]
     res = calibrate_intrinsics(obs, SIZE, method="paper")
     assert res.method == "paper"
+    assert res.distortion_model == "none"  # what the report and the file say was fitted
     assert np.allclose(res.K, K_TRUE, rtol=1e-6, atol=1e-3)
     for variant in ("diameter_ends", "all_rings"):
         est = res.paper[variant]
