@@ -22,7 +22,9 @@ views are needed.
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Callable
+from concurrent.futures import Future
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,6 +38,7 @@ from calibration.intrinsics_adjust import (
     camera_matrix,
     intrinsics_covariance,
 )
+from scanner.core.parallel import thread_pool
 
 __all__ = [
     "DISTORTION_MODELS",
@@ -119,6 +122,51 @@ def _folds(n_views: int, folds: int) -> int:
     return k
 
 
+@dataclass(frozen=True)
+class _FoldScore:
+    """One candidate's fit to one fold's training views, scored on its held-out views."""
+
+    held_out: NDArray  # (M,) indices of the held-out views
+    per_view_px: NDArray  # (M,) their RMS reprojection error with the intrinsics held
+    fit_rms_px: float
+    sigma_ms_px2: float  # mean square projection uncertainty over the image (inf: none)
+
+
+def _fold_score(
+    observations: list[TargetObservation],
+    held_out: NDArray,
+    K_start: NDArray,
+    dist_start: NDArray,
+    poses_start: NDArray,
+    fixed: tuple[str, ...],
+    max_points_per_ring: int,
+    size: tuple[int, int],
+) -> _FoldScore:
+    """Fit the views not ``held_out`` (a boolean mask ``(V,)``) with the terms ``fixed`` held,
+    then the held-out views' poses with the intrinsics held, and score them."""
+    train = np.flatnonzero(~held_out)
+    test = np.flatnonzero(held_out)
+    x, res, prob, _ = _adjust(
+        [observations[i] for i in train], K_start, dist_start, poses_start[train], None,
+        max_points_per_ring, fixed,
+    )  # fmt: skip
+    K = camera_matrix(x)
+    try:
+        cov = intrinsics_covariance(prob, x, res, fixed)
+        sigma_ms = float(np.mean(projection_uncertainty(K, x[4:9], cov, size).sigma_px ** 2))
+    except np.linalg.LinAlgError:
+        sigma_ms = float("inf")
+    # The held-out views' poses, fitted with the intrinsics held (independent of each other,
+    # so one adjustment fits them all).
+    _, r, held, _ = _adjust(
+        [observations[i] for i in test], K, x[4:9], poses_start[test], None,
+        max_points_per_ring, PARAM_NAMES,
+    )  # fmt: skip
+    views = held.residual_views()
+    per_view = np.array([float(np.sqrt(np.mean(r[views == j] ** 2))) for j in range(len(test))])
+    return _FoldScore(test, per_view, float(np.sqrt(np.mean(res**2))), sigma_ms)
+
+
 def select_distortion_model(
     observations: list[TargetObservation],
     K0: NDArray,
@@ -129,6 +177,7 @@ def select_distortion_model(
     max_points_per_ring: int = 60,
     image_size: tuple[int, int] | None = None,
     check_cancelled: Callable[[], None] | None = None,
+    workers: int = 2,
 ) -> ModelSelection:
     """Choose the distortion terms by their error on held-out views.
 
@@ -150,8 +199,11 @@ def select_distortion_model(
     image_size : tuple of int, optional
         ``(width, height)``; by default the first observation's.
     check_cancelled : callable, optional
-        Called before each fold's fit (every candidate's folds): whatever it raises stops the
-        choice and comes out of this function (a PLC job's cancellation), within one fold.
+        Called before each fold's fit is started (every candidate's folds): whatever it
+        raises stops the choice and comes out of this function (a PLC job's cancellation),
+        once the fits already running (at most ``workers - 1``) have ended.
+    workers : int
+        Fits run at a time, on threads (NumPy's array steps release the GIL).
 
     Returns
     -------
@@ -170,44 +222,39 @@ def select_distortion_model(
     # there are close to any candidate's, so no fit (held-out poses above all) starts far off.
     x_all, _, _, _ = _adjust(observations, K0, np.zeros(5), poses0, None, max_points_per_ring)
     K_start, poses_start = camera_matrix(x_all), x_all[9:].reshape(n, 6)
-    scores = []
-    for name in candidates:
+    tasks = [(name, f) for name in candidates for f in range(k)]
+
+    def run(task: tuple[str, int]) -> _FoldScore:
+        name, f = task
         fixed = DISTORTION_MODELS[name]
         dist_start = x_all[4:9].copy()
         for term in fixed:
             dist_start[PARAM_NAMES.index(term) - 4] = 0.0
+        return _fold_score(
+            observations, fold_of == f, K_start, dist_start, poses_start, fixed,
+            max_points_per_ring, size,
+        )  # fmt: skip
+
+    # The folds are independent fits: on threads (NumPy's array steps release the GIL), at
+    # most ``workers`` at a time, each started after a cancellation check as in turn; a
+    # cancellation leaves the fits not yet started and waits for the running ones.
+    done: list[_FoldScore] = []
+    with thread_pool(max(workers, 1)) as pool:
+        running: deque[Future[_FoldScore]] = deque()
+        for task in tasks:
+            if len(running) >= workers:
+                done.append(running.popleft().result())
+            check()
+            running.append(pool.submit(run, task))
+        done += [fut.result() for fut in running]
+    scores = []
+    for c, name in enumerate(candidates):
         per_view = np.full(n, np.nan)
         fit_rms, sigma_ms = [], []
-        for f in range(k):
-            check()
-            train = np.flatnonzero(fold_of != f)
-            test = np.flatnonzero(fold_of == f)
-            x, res, prob, _ = _adjust(
-                [observations[i] for i in train],
-                K_start,
-                dist_start,
-                poses_start[train],
-                None,
-                max_points_per_ring,
-                fixed,
-            )
-            fit_rms.append(float(np.sqrt(np.mean(res**2))))
-            K = camera_matrix(x)
-            try:
-                cov = intrinsics_covariance(prob, x, res, fixed)
-                sigma = projection_uncertainty(K, x[4:9], cov, size).sigma_px
-                sigma_ms.append(float(np.mean(sigma**2)))
-            except np.linalg.LinAlgError:
-                sigma_ms.append(float("inf"))
-            # The held-out views' poses, fitted with the intrinsics held (independent of
-            # each other, so one adjustment fits them all).
-            _, r, held, _ = _adjust(
-                [observations[i] for i in test], K, x[4:9], poses_start[test], None,
-                max_points_per_ring, PARAM_NAMES,
-            )  # fmt: skip
-            views = held.residual_views()
-            for j, i in enumerate(test):
-                per_view[i] = float(np.sqrt(np.mean(r[views == j] ** 2)))
+        for fold in done[c * k : (c + 1) * k]:
+            per_view[fold.held_out] = fold.per_view_px
+            fit_rms.append(fold.fit_rms_px)
+            sigma_ms.append(fold.sigma_ms_px2)
         held_out = float(np.sqrt(np.mean(per_view**2)))
         # A fold whose covariance could not be computed pins nothing: inf (never NaN).
         unc = float(np.sqrt(np.mean(sigma_ms)))
