@@ -118,9 +118,9 @@ def _axis_vanishing_point(obs: TargetObservation, axis: str) -> NDArray | None:
     t = (pts - o) @ d
     # t (c s + 1) = a s + b
     A = np.column_stack([s, np.ones_like(s), -s * t])
-    (a, b, c), *_ = np.linalg.lstsq(A, t, rcond=None)
-    base = o + b * 0.0
-    return np.array([c * base[0] + a * d[0], c * base[1] + a * d[1], c])
+    (a, _, c), *_ = np.linalg.lstsq(A, t, rcond=None)
+    # s -> infinity: t -> a / c, the point o + (a / c) d, homogeneous
+    return np.array([c * o[0] + a * d[0], c * o[1] + a * d[1], c])
 
 
 def view_vanishing_points(obs: TargetObservation) -> tuple[NDArray, NDArray, str] | None:
@@ -128,9 +128,10 @@ def view_vanishing_points(obs: TargetObservation) -> tuple[NDArray, NDArray, str
 
     The paper's are the harmonic conjugates of O with respect to the largest ring's diameter
     ends A, B and C, D (:attr:`TargetObservation.vanishing_points`). Where one of those ends
-    lies outside the image or is not found, every ring's ends along the diameters give them
-    (:func:`_axis_vanishing_point`): O is the midpoint of each ring's ends as it is of AB, so
-    the same projective property holds for each ring.
+    lies outside the image or is not found, every ring's ends found along each diameter give
+    them (:func:`_axis_vanishing_point`): a 1-D projective fit of their image positions to
+    their radii in the spec (so it relies on the rings' labels, as the rest of the
+    calibration does), the harmonic property of A, O, B generalised to every ring.
 
     Parameters
     ----------

@@ -685,29 +685,55 @@ def _paper_hand_eye(
         ct, source = _paper_reference_pose(obs, camera, px, lp) if name == "O" else (None, "")
         views.append(StripePointView(f.id, name, f.base_from_flange, p_cam, ct))  # type: ignore[arg-type]
         sources.append(source)
-    # The paper's own reference pose (the largest ring's ends in view) wherever a view aimed at
-    # O gives one; the other rings' ends only where none does.
+    ref = _choose_paper_reference(views, sources)
+    he = paper_hand_eye(views, target.radius_mm)
+    if he and ref is not None and sources[ref] == "all_rings":
+        he.warnings.append(
+            f"the reference view aimed at O (frame {views[ref].frame_id}) does not show both ends "
+            "of both diameters: its vanishing points come from every ring's ends along them"
+        )
+    return he
+
+
+def _choose_paper_reference(views: list[StripePointView], sources: list[str]) -> int | None:
+    """Index of the view whose pose :func:`paper_hand_eye` takes as the paper's T_cwO (the
+    first view with a ``cam_from_target``), or None.
+
+    The paper's own reference (``sources[i] == "diameter_ends"``: the largest ring's ends in
+    view) is taken wherever a view gives one: the poses of the views whose vanishing points
+    came from every ring's ends (``"all_rings"``) are then dropped (set to None, in place).
+    """
     if "diameter_ends" in sources:
         for v, source in zip(views, sources, strict=True):
             if source != "diameter_ends":
                 v.cam_from_target = None
-    he = paper_hand_eye(views, target.radius_mm)
-    ref = next((i for i, v in enumerate(views) if v.cam_from_target is not None), None)
-    if he and ref is not None and sources[ref] == "all_rings":
-        he.warnings.append(
-            f"the reference view aimed at O (frame {views[ref].frame_id}) does not show both ends "
-            "of both diameters: its vanishing points and axes' signs come from every ring's ends"
-        )
-    return he
+    return next((i for i, v in enumerate(views) if v.cam_from_target is not None), None)
 
 
 def _paper_reference_pose(
     obs: TargetObservation, camera: CameraModel, stripe_o_px: NDArray, plane: LightPlane
 ) -> tuple[NDArray | None, str]:
     """The paper's ``T_cwO`` of a view with the stripe on O (:func:`paper_pose`), and which
-    rings gave it: ``"diameter_ends"`` (the paper: A, B, C and D in view) or ``"all_rings"``
-    (:func:`view_vanishing_points`, and for the signs, where A or C is missing, the
-    outermost ring end found on that diameter); ``(None, "")`` where the view gives none."""
+    rings gave it.
+
+    Parameters
+    ----------
+    obs : TargetObservation
+        The view's concentric-target observation.
+    camera : CameraModel
+    stripe_o_px : ndarray, shape (2,)
+        The stripe's pixel on O.
+    plane : LightPlane
+        The light plane, camera frame.
+
+    Returns
+    -------
+    ndarray, shape (4, 4), or None; and str
+        ``cam_from_target`` and ``"diameter_ends"`` (the paper's: A, B, C and D in view) or
+        ``"all_rings"`` (:func:`view_vanishing_points`; and, for the sign of an axis whose
+        end A or C is missing, the outermost ring end found on that diameter); ``(None, "")``
+        where the view gives no pose.
+    """
     vps = view_vanishing_points(obs)
     if vps is None or "O" not in obs.named_px:
         return None, ""
