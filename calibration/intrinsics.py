@@ -179,6 +179,7 @@ def calibrate_intrinsics(
     fixed: tuple[str, ...] = (),
     distortion: str = "auto",
     check_cancelled: Callable[[], None] | None = None,
+    workers: int = 2,
 ) -> IntrinsicsResult:
     """Calibrate the camera from observations of a planar target.
 
@@ -211,6 +212,8 @@ def calibrate_intrinsics(
         Called after the first adjustment and each one without outlier views, before each
         fold of the distortion model's choice and before the chosen model's fit: whatever it
         raises stops the calibration and comes out of this function.
+    workers : int
+        Fits of the distortion model's choice run at a time, on threads.
 
     Returns
     -------
@@ -334,7 +337,7 @@ def calibrate_intrinsics(
     if auto:
         poses = x[9:].reshape(-1, 6)
         selection = select_distortion_model(
-            obs, camera_matrix(x), poses, check_cancelled=check_cancelled
+            obs, camera_matrix(x), poses, check_cancelled=check_cancelled, workers=workers
         )
         check()
         model = selection.chosen

@@ -22,9 +22,7 @@ views are needed.
 
 from __future__ import annotations
 
-from collections import deque
 from collections.abc import Callable
-from concurrent.futures import Future
 from dataclasses import dataclass
 
 import numpy as np
@@ -38,7 +36,7 @@ from calibration.intrinsics_adjust import (
     camera_matrix,
     intrinsics_covariance,
 )
-from scanner.core.parallel import thread_pool
+from scanner.core.parallel import thread_map
 
 __all__ = [
     "DISTORTION_MODELS",
@@ -235,18 +233,8 @@ def select_distortion_model(
             max_points_per_ring, size,
         )  # fmt: skip
 
-    # The folds are independent fits: on threads (NumPy's array steps release the GIL), at
-    # most ``workers`` at a time, each started after a cancellation check as in turn; a
-    # cancellation leaves the fits not yet started and waits for the running ones.
-    done: list[_FoldScore] = []
-    with thread_pool(max(workers, 1)) as pool:
-        running: deque[Future[_FoldScore]] = deque()
-        for task in tasks:
-            if len(running) >= workers:
-                done.append(running.popleft().result())
-            check()
-            running.append(pool.submit(run, task))
-        done += [fut.result() for fut in running]
+    # The folds are independent fits (two at a time: NumPy's array steps release the GIL).
+    done = thread_map(run, tasks, workers, check)
     scores = []
     for c, name in enumerate(candidates):
         per_view = np.full(n, np.nan)

@@ -272,7 +272,8 @@ def calibrate_session(
         Detections from an earlier run on the same session (frame id -> observation), to
         skip the detection stage.
     workers : int
-        Processes detecting the target in parallel (1: in this process).
+        Processes detecting the target in parallel (1: in this process), and threads for the
+        distortion model's fold fits.
     check_cancelled : callable, optional
         Called as each stage starts, after each image's detection and each laser frame's
         stripe, before each fold of the intrinsics' distortion-model choice and each re-solve
@@ -356,6 +357,7 @@ def calibrate_session(
         method=method,
         target=target,
         check_cancelled=check_cancelled,
+        workers=workers,
     )
     for idx, why in intr.rejected:
         rejected.append(Rejection(found[idx].id, "intrinsics", why))

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from scanner.core.parallel import process_map, thread_pool
+from scanner.core.parallel import process_map, thread_map, thread_pool
 from scanner.stripe.extract import extract_stripe
 from scanner.virtual_cell.analytic import StripeSegment, render_stripes
 from tests.cancelling import CancelAt, Cancelled
@@ -80,3 +80,64 @@ def test_a_cancelled_process_map_stops_and_drops_what_has_not_started(tmp_path: 
 def test_process_map_refuses_no_workers(tmp_path: Path):
     with pytest.raises(ValueError, match="workers: expected >= 1, got 0"):
         list(process_map(_touch_and_square, [(tmp_path, 1)], 0))
+
+
+@pytest.mark.parametrize("workers", [1, 2, 3])
+def test_thread_map_gives_the_results_in_order_with_at_most_workers_at_a_time(workers: int):
+    lock = threading.Lock()
+    running, most = [0], [0]
+
+    def slow_square(x: int) -> int:
+        with lock:
+            running[0] += 1
+            most[0] = max(most[0], running[0])
+        time.sleep(0.01 * (x % 3))  # later items may end first
+        with lock:
+            running[0] -= 1
+        return x * x
+
+    assert thread_map(slow_square, range(12), workers) == [x * x for x in range(12)]
+    assert most[0] <= workers
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_a_cancelled_thread_map_starts_nothing_after_the_check_and_ends_what_runs(workers: int):
+    # As a loop that checks before each item: the check that raises is the fourth, so three
+    # items were started, and all three end before the cancellation comes out.
+    started, ended = [], []
+
+    def record(x: int) -> int:
+        started.append(x)
+        time.sleep(0.02)
+        ended.append(x)
+        return x
+
+    check = CancelAt(4)
+    with pytest.raises(Cancelled):
+        thread_map(record, range(20), workers, check_cancelled=check)
+    assert check.calls == 4
+    assert sorted(started) == [0, 1, 2] and sorted(ended) == [0, 1, 2]
+    # A cancellation that comes while the items run (here: once one has ended) stops the
+    # items after those already started; none waits queued past a check.
+    started.clear()
+    ended.clear()
+
+    def cancelled_once_one_ended() -> None:
+        if ended:
+            raise Cancelled
+
+    with pytest.raises(Cancelled):
+        thread_map(record, range(20), workers, check_cancelled=cancelled_once_one_ended)
+    assert sorted(started) == list(range(workers))
+
+
+def test_thread_map_passes_an_items_error_on_and_refuses_no_workers():
+    def fail_on_two(x: int) -> int:
+        if x == 2:
+            raise RuntimeError("item 2")
+        return x
+
+    with pytest.raises(RuntimeError, match="item 2"):
+        thread_map(fail_on_two, range(6), 2)
+    with pytest.raises(ValueError, match="workers: expected >= 1, got 0"):
+        thread_map(fail_on_two, [1], 0)
