@@ -122,12 +122,24 @@ def _folds(n_views: int, folds: int) -> int:
 
 @dataclass(frozen=True)
 class _FoldScore:
-    """One candidate's fit to one fold's training views, scored on its held-out views."""
+    """One candidate's fit to one fold's training views, scored on its held-out views.
 
-    held_out: NDArray  # (M,) indices of the held-out views
-    per_view_px: NDArray  # (M,) their RMS reprojection error with the intrinsics held
+    Attributes
+    ----------
+    held_out : ndarray, shape (M,)
+        Indices of the held-out views.
+    per_view_px : ndarray, shape (M,)
+        Their RMS reprojection error, px, with the fold's intrinsics held.
+    fit_rms_px : float
+        RMS residual of the fold's own fit, px.
+    sigma_ms_px2 : float
+        Mean square projection uncertainty over the image, px^2 (inf: none computed).
+    """
+
+    held_out: NDArray
+    per_view_px: NDArray
     fit_rms_px: float
-    sigma_ms_px2: float  # mean square projection uncertainty over the image (inf: none)
+    sigma_ms_px2: float
 
 
 def _fold_score(
