@@ -83,21 +83,28 @@ def test_process_map_refuses_no_workers(tmp_path: Path):
 
 
 @pytest.mark.parametrize("workers", [1, 2, 3])
-def test_thread_map_gives_the_results_in_order_with_at_most_workers_at_a_time(workers: int):
+def test_thread_map_gives_the_results_in_order_and_checks_with_a_free_worker(workers: int):
+    # Each check comes when a worker is free for the next item (at most workers - 1 running),
+    # as a loop's check comes between its items; the pool alone would bound only how many run.
     lock = threading.Lock()
-    running, most = [0], [0]
+    running, at_check = [0], []
 
     def slow_square(x: int) -> int:
         with lock:
             running[0] += 1
-            most[0] = max(most[0], running[0])
         time.sleep(0.01 * (x % 3))  # later items may end first
         with lock:
             running[0] -= 1
         return x * x
 
-    assert thread_map(slow_square, range(12), workers) == [x * x for x in range(12)]
-    assert most[0] <= workers
+    def check() -> None:
+        time.sleep(0.002)  # the items just handed over have started
+        with lock:
+            at_check.append(running[0])
+
+    squares = thread_map(slow_square, range(12), workers, check_cancelled=check)
+    assert squares == [x * x for x in range(12)]
+    assert len(at_check) == 12 and max(at_check) <= workers - 1
 
 
 @pytest.mark.parametrize("workers", [1, 2])
