@@ -35,6 +35,7 @@ from scanner.formats.clouds import _check_format, write_cloud
 from scanner.formats.session import Frame, Session, read_session
 from scanner.scanning.stitch import build_cloud, filter_cloud, incidence_cosines, refine_sweeps
 from scanner.scanning.triangulate import Triangulator
+from scanner.stripe.background import take_out_uneven_background
 from scanner.stripe.extract import (
     MODES,
     StripeFlag,
@@ -325,31 +326,45 @@ def _load_chunk(path: Path, key: str) -> dict[str, NDArray] | None:
 def _sweep_stripe_options(
     frames: Sequence[Frame], options: ScanOptions, orientation: str, probes: int = 5
 ) -> StripeOptions:
-    """Fix the centre-of-gravity window and the noise level once per sweep, from a few frames.
+    """Fix the centre-of-gravity window, the noise level and whether an uneven background is
+    taken out once per sweep, from a few frames.
 
     One window for the whole sweep keeps the estimator identical from frame to frame, and
-    neither is then measured again on every frame.
+    none of them is then measured again on every frame. The background is taken out of every
+    frame without a laser-off frame where any probe's background is uneven
+    (:func:`scanner.stripe.background.background_is_uneven`).
     """
     stripe = options.stripe
-    if (stripe.half_window_px is not None and stripe.noise is not None) or not frames:
+    fixed = stripe.half_window_px is not None and stripe.noise is not None
+    if (fixed and stripe.flatten_background is not None) or not frames:
         return stripe
     step = max(1, len(frames) // probes)
-    windows, noises = [], []
+    windows, noises, uneven = [], [], []
     for f in frames[::step][:probes]:
         off_path = f.laser_off_image if options.use_laser_off else None
         img, off = load_laser_images(f.laser_image, off_path)  # type: ignore[arg-type]
         if off is not None:
             img = cv2.subtract(img, off)
+        else:
+            img, flattened = take_out_uneven_background(img, stripe)
+            uneven.append(flattened)
         work = img if orientation == "rows" else cv2.transpose(img)
         noise = estimate_noise(work)
         noises.append(noise)
         windows.append(auto_half_window(work, noise))
     hw = stripe.half_window_px if stripe.half_window_px is not None else int(np.median(windows))
     noise = stripe.noise if stripe.noise is not None else float(np.median(noises))
+    flatten = stripe.flatten_background
+    if flatten is None:
+        flatten = any(uneven)
     log.info(
-        "sweep constants: half-window %d px, noise %.2f (from %d frames)", hw, noise, len(noises)
+        "sweep constants: half-window %d px, noise %.2f, background %s (from %d frames)",
+        hw,
+        noise,
+        "taken out" if flatten else "as it is",
+        len(noises),
     )
-    return replace(stripe, half_window_px=hw, noise=noise)
+    return replace(stripe, half_window_px=hw, noise=noise, flatten_background=flatten)
 
 
 def _resolve_orientation(options: ScanOptions, calibration: Calibration) -> str:
@@ -698,14 +713,24 @@ def scan_session(
         )
         t4 = time.perf_counter()
         n_points = len(cloud.point.positions)
-        if n_points == 0 and n_stripe_points and removed:
-            reasons = ", ".join(f"{n} {k}" for k, n in removed.items())
-            warnings.append(
-                f"all {n_stripe_points} stripe points are flagged ({reasons}); "
-                "--keep-flagged keeps them"
-            )
-        elif n_points == 0:
-            warnings.append("no stripe points found in any frame")
+        if n_points == 0:
+            # Nothing to hand on: refused like bad input, before anything is written.
+            if n_stripe_points and removed:
+                reasons = ", ".join(f"{n} {k}" for k, n in removed.items())
+                why = (
+                    f"all {n_stripe_points} stripe points are flagged ({reasons}); "
+                    "--keep-flagged keeps them"
+                )
+            elif n_stripe_points:
+                why = f"all {n_stripe_points} stripe points were filtered out of the cloud"
+            elif len(profiles["u"]):
+                why = (
+                    f"none of the {len(profiles['u'])} stripe points lies in the region or "
+                    "above the table cut"
+                )
+            else:
+                why = f"no stripe points found in any of its {len(frames)} frames"
+            raise InputError(sessions[0].root, f"{why}; nothing written")
 
         written = None
         if out_path is not None:

@@ -62,7 +62,8 @@ def build_cloud(
             raise ValueError(f"{key}: expected {pts.shape[0]} values, got {a.shape[0]}")
         if a.dtype == np.int64:
             a = a.astype(np.int32)
-        cloud.point[key] = o3d.core.Tensor(np.ascontiguousarray(a.reshape(pts.shape[0], -1)))
+        columns = int(np.prod(a.shape[1:])) if a.ndim > 1 else 1  # (N, 1), also for N = 0
+        cloud.point[key] = o3d.core.Tensor(np.ascontiguousarray(a.reshape(pts.shape[0], columns)))
     return cloud
 
 

@@ -31,8 +31,9 @@ lines carry :attr:`StripeFlag.AMBIGUOUS`.
 The parts: :mod:`scanner.stripe.profile` (the result, its flags and options),
 :mod:`scanner.stripe.orientation`, :mod:`scanner.stripe.estimates` (noise, window),
 :mod:`scanner.stripe.fast` (with its compiled kernel, :mod:`scanner.stripe.kernels`),
-:mod:`scanner.stripe.peaks` (several peaks per line, reflections)
-and :mod:`scanner.stripe.precise`; :func:`extract_stripe` here puts them together.
+:mod:`scanner.stripe.peaks` (several peaks per line, reflections),
+:mod:`scanner.stripe.background` (an uneven background taken out of a frame without a
+laser-off frame) and :mod:`scanner.stripe.precise`; :func:`extract_stripe` here puts them together.
 """
 
 from __future__ import annotations
@@ -45,6 +46,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanner.core.images import check_gray_image
+from scanner.stripe.background import take_out_uneven_background
 from scanner.stripe.estimates import _median, auto_half_window, estimate_noise
 from scanner.stripe.fast import _measure_many as _measure_many  # for benchmarks/bench_stripe.py
 from scanner.stripe.fast import _saturation_level, flag_low_contrast
@@ -95,6 +97,8 @@ def extract_stripe(
         :func:`orientation_from_calibration` once per sweep.
     background : ndarray, shape (H, W), optional
         A laser-off frame of the same pose: subtracted (clipped at zero) before the search.
+        Without one, an uneven background is estimated from the frame and taken out
+        (:attr:`StripeOptions.flatten_background`).
     options : StripeOptions, optional
         Thresholds and windows; keyword ``overrides`` replace single fields.
 
@@ -133,12 +137,24 @@ def extract_stripe(
             img = np.clip(img.astype(np.float32) - bg.astype(np.float32), 0, None)
         if np.isfinite(level) and saturated.any():
             img[saturated] = level
+    # The rows' noise serves the background's test and, for row scan lines, the thresholds.
+    row_noise = None
+    if background is None and opts.flatten_background is None and opts.noise is None:
+        row_noise = estimate_noise(img)
+    flattened = False
+    if background is None:
+        img, flattened = take_out_uneven_background(img, opts, row_noise)
     if orientation == "auto":
         orientation = orientation_from_image(img)
     # Column scan lines: the transposed view, read in place by the kernels (copied only on the
     # rarer paths that need contiguous rows).
     work = img if orientation == "rows" else img.T
-    noise = float(opts.noise) if opts.noise is not None else estimate_noise(work)
+    if opts.noise is not None:
+        noise = float(opts.noise)
+    elif row_noise is not None and orientation == "rows" and not flattened:
+        noise = row_noise
+    else:
+        noise = estimate_noise(work)
 
     hw = opts.half_window_px
     hw = auto_half_window(work, noise) if hw is None else int(hw)

@@ -21,6 +21,16 @@ from scanner.stripe.fast import _contiguous, _measure_lines, _measure_many, _sat
 from scanner.stripe.profile import StripeFlag, StripeOptions, _Peaks
 
 
+def contrast_threshold(img: NDArray, options: StripeOptions, noise: float, sat: float) -> float:
+    """The smallest contrast a peak needs, grey levels: ``k_noise`` times the noise, and at
+    least ``min_contrast`` (by default 3 % of the saturation level, or of a float frame's
+    maximum)."""
+    min_contrast = options.min_contrast
+    if min_contrast is None:
+        min_contrast = 0.03 * (sat if np.isfinite(sat) else float(img.max()))
+    return max(options.k_noise * noise, float(min_contrast))
+
+
 def _primary_and_secondary(
     img: NDArray, options: StripeOptions, noise: float, hw: int
 ) -> tuple[_Peaks, bool]:
@@ -31,10 +41,7 @@ def _primary_and_secondary(
     """
     H, W = img.shape
     sat = _saturation_level(img, options)
-    min_contrast = options.min_contrast
-    if min_contrast is None:
-        min_contrast = 0.03 * (sat if np.isfinite(sat) else float(img.max()))
-    thr_contrast = max(options.k_noise * noise, float(min_contrast))
+    thr_contrast = contrast_threshold(img, options, noise, sat)
 
     # Lines where something else clears the threshold outside the primary's window are searched
     # for further peaks; the common frame (one stripe, dark background) skips this entirely.

@@ -78,6 +78,13 @@ class StripeOptions:
         Contrast below this fraction of the frame's median stripe contrast sets LOW_CONTRAST.
     keep_reflections : bool
         Keep the peaks judged to be reflections (flagged AMBIGUOUS) instead of dropping them.
+    flatten_background : bool or None
+        Take a smooth background out of a frame that has no laser-off frame
+        (:func:`scanner.stripe.background.flatten_background`), so that a faint stripe on an
+        unevenly lit frame clears the threshold and is each line's brightest peak; ``None``:
+        where the frame's own background varies by more than twice the contrast threshold
+        (:func:`scanner.stripe.background.background_is_uneven`), which the virtual cell's
+        frames do not. A scan decides it once per sweep.
     end_lines : int
         Peaks fewer than this many lines from the end of their run of linked peaks (a run
         ending at the image's first or last line does not end there) get STRETCH_END; 0 (the
@@ -98,6 +105,7 @@ class StripeOptions:
     reflection_ratio: float = 0.6
     low_contrast_ratio: float = 0.25
     keep_reflections: bool = False
+    flatten_background: bool | None = None
     end_lines: int = 0
 
     def __post_init__(self) -> None:

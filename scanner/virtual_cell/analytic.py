@@ -18,7 +18,15 @@ from scanner.core.conventions import invert_transform, make_transform
 from scanner.formats.calibration_file import Calibration, LightPlane
 from scanner.formats.session import Frame, write_session
 
-__all__ = ["StripeSegment", "TableStepScene", "render_stripes", "write_table_step_sweep"]
+__all__ = [
+    "StripeConditions",
+    "StripeSegment",
+    "TableStepScene",
+    "draw_stripe_conditions",
+    "render_stripe_conditions",
+    "render_stripes",
+    "write_table_step_sweep",
+]
 
 
 @dataclass(frozen=True)
@@ -140,6 +148,9 @@ class TableStepScene:
     sigma_px: float = 1.5
     amplitude: float = 160.0
     noise: float = 1.0
+    ambient_ramp: float = 0.0
+    """Ambient light rising across the image, grey levels from the left edge to the right (on
+    top of the dark frame's 6): a lit cell without a laser-off frame."""
 
     def calibration(self):  # -> scanner.formats.calibration_file.Calibration
         from scipy.spatial.transform import Rotation
@@ -228,7 +239,7 @@ def write_table_step_sweep(
     u = np.arange(scene.width, dtype=np.float64)
     cam_from_flange = invert_transform(cal.flange_from_cam)
     for i, x in enumerate(x_mm):
-        img = np.full((scene.height, scene.width), 6.0)
+        img = np.full((scene.height, scene.width), 6.0) + scene.ambient_ramp * u / scene.width
         for rows, centres in scene.centres(float(x)):
             if rows.size:
                 img[rows] += scene.amplitude * _pixel_gaussian(u, centres, scene.sigma_px)
@@ -300,3 +311,101 @@ features = ["table"]
 tolerance = {flatness_tolerance_mm!r}
 """
     return text
+
+
+@dataclass(frozen=True)
+class StripeConditions:
+    """One randomised stripe frame (:func:`draw_stripe_conditions`): a Gaussian stripe along a
+    curved centre line over a shaded background, as cameras of other cells give it.
+
+    Attributes
+    ----------
+    shape : (int, int)
+        ``(H, W)`` in working orientation (rows are scan lines).
+    sigma_px, amplitude, noise : float
+        The cross-section's sigma along the scan line (px), its peak above the background and
+        the noise's standard deviation (8-bit grey levels, scaled by 257 for 16 bits).
+    background, gradient_per_px : float
+        The background's level at the image's centre and its slope along the scan line.
+    coeffs : (float, float, float)
+        The centre line ``pos(line)`` (:class:`StripeSegment`).
+    bit_depth : int
+        8 or 16.
+    orientation : {"rows", "cols"}
+        How the frame is stored (``"cols"``: transposed).
+    """
+
+    shape: tuple[int, int]
+    sigma_px: float
+    amplitude: float
+    noise: float
+    background: float
+    gradient_per_px: float
+    coeffs: tuple[float, float, float]
+    bit_depth: int
+    orientation: str
+
+    @property
+    def snr(self) -> float:
+        """The stripe's peak contrast over the noise, as far as saturation lets it show."""
+        return min(self.amplitude, 255.0 - self.background) / self.noise
+
+    @property
+    def background_range(self) -> float:
+        """How much the background varies along a scan line, 8-bit grey levels."""
+        return abs(self.gradient_per_px) * self.shape[1]
+
+
+def draw_stripe_conditions(rng: np.random.Generator) -> StripeConditions:
+    """Conditions of one stripe frame over a domain wider than any one cell's.
+
+    Image 640x480, 1024x768 or 1280x1024; stripe sigma 0.5-5 px and amplitude 15-700 grey
+    levels (log-uniform: faint to saturated), background 0-120 with a slope along the scan
+    line of up to +-0.05 grey levels per px (up to +-32 grey levels at a 1280 px line's ends),
+    noise 0.3-6 grey levels (log-uniform), the stripe slanted up to 0.8 px per line and
+    curved, 8 bits or (a quarter) 16 bits, stored row- or column-wise.
+    """
+    h, w = [(480, 640), (768, 1024), (1024, 1280)][int(rng.integers(3))]
+    slope = float(rng.uniform(-0.8, 0.8))
+    curvature = float(rng.uniform(-3e-4, 3e-4))
+    c0 = w / 2 - slope * h / 2 - curvature * (h / 2) ** 2 + float(rng.uniform(-0.2, 0.2)) * w
+    return StripeConditions(
+        shape=(h, w),
+        sigma_px=float(np.exp(rng.uniform(np.log(0.5), np.log(5.0)))),
+        amplitude=float(np.exp(rng.uniform(np.log(15.0), np.log(700.0)))),
+        noise=float(np.exp(rng.uniform(np.log(0.3), np.log(6.0)))),
+        background=float(rng.uniform(0.0, 120.0)),
+        gradient_per_px=float(rng.uniform(-0.05, 0.05)),
+        coeffs=(c0, slope, curvature),
+        bit_depth=16 if rng.random() < 0.25 else 8,
+        orientation="rows" if rng.random() < 0.5 else "cols",
+    )
+
+
+def render_stripe_conditions(
+    c: StripeConditions, seed: int = 0
+) -> tuple[NDArray, NDArray, NDArray]:
+    """The frame of ``c`` and its truth.
+
+    Returns
+    -------
+    image : ndarray, shape (H, W) (``(W, H)`` for ``"cols"``), uint8 or uint16
+    lines : ndarray, shape (L,), int
+        The scan lines the stripe covers.
+    pos : ndarray, shape (L,)
+        Its true centre along each of them, px.
+    """
+    scale = 257.0 if c.bit_depth == 16 else 1.0
+    seg = StripeSegment((0, c.shape[0]), c.coeffs, c.amplitude * scale, c.sigma_px)
+    image, truth = render_stripes(
+        c.shape,
+        [seg],
+        background=c.background * scale,
+        gradient_per_px=c.gradient_per_px * scale,
+        noise=c.noise * scale,
+        dtype=np.uint16 if c.bit_depth == 16 else np.uint8,
+        full_scale=65535.0 if c.bit_depth == 16 else 255.0,
+        orientation=c.orientation,
+        seed=seed,
+    )
+    return image, truth[0][0], truth[0][1]

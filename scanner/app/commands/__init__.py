@@ -84,7 +84,12 @@ def scan_options(args: argparse.Namespace) -> ScanOptions:
         Stripe mode, cloud filtering, ICP and extraction threads as given on the command line.
     """
     return ScanOptions(
-        stripe=StripeOptions(end_lines=args.stretch_end_lines),
+        stripe=StripeOptions(
+            end_lines=args.stretch_end_lines,
+            flatten_background={"auto": None, "remove": True, "keep": False}[
+                args.uneven_background
+            ],
+        ),
         mode=args.mode,
         voxel_mm=args.voxel_mm,
         outlier_neighbors=args.outliers,

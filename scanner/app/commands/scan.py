@@ -75,6 +75,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="flag the last N lines before the stripe is cut by a depth jump or an edge "
         "(mixed pixels; 3 suits features many lines across; default 0: none)",
     )
+    p.add_argument(
+        "--uneven-background",
+        choices=("auto", "remove", "keep"),
+        default="auto",
+        help="frames without laser-off frames: take a smooth background out of every frame "
+        "(remove), never (keep), or where the sweep's first frames show it uneven against the "
+        "stripe threshold (auto, the default)",
+    )
     p.add_argument("--workers", type=int, default=2, help="extraction threads (default 2)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)

@@ -14,6 +14,7 @@ from scanner.formats.clouds import read_cloud, read_ply_metadata
 from scanner.formats.session import read_session, write_session
 from scanner.scanning import pipeline
 from scanner.scanning.pipeline import ScanOptions, scan_session, table_cut_mm
+from scanner.stripe.profile import StripeOptions
 from scanner.virtual_cell.analytic import TableStepScene, write_table_step_sweep
 
 
@@ -376,3 +377,31 @@ def test_a_region_keeps_only_the_points_inside_its_box(sweep):
     x_all = whole.cloud.point.positions.numpy()[:, 0]
     assert len(x) == np.count_nonzero(np.abs(x_all) <= 5.0) > 0
     assert np.all(np.abs(x) <= 5.0)
+
+
+def test_a_faint_stripe_in_a_lit_cell_is_scanned_whole(sweep, tmp_path):
+    # Ambient light rising by 60 grey levels across the frame, a stripe of 25 above it, no
+    # laser-off frames: the sweep's probes find the background uneven and every frame has it
+    # taken out, once decided for the whole sweep.
+    scene = TableStepScene(amplitude=25.0, ambient_ramp=60.0)
+    session, cal, _ = write_table_step_sweep(tmp_path / "lit", scene=scene, seed=3)
+    cal_path = tmp_path / "calibration.json"
+    write_calibration(cal_path, cal)
+    frames = read_session(session).frames
+    lit = pipeline._sweep_stripe_options(frames, ScanOptions(), "rows")
+    assert lit.flatten_background is True and lit.noise is not None
+    dark = pipeline._sweep_stripe_options(read_session(sweep[0]).frames, ScanOptions(), "rows")
+    assert dark.flatten_background is False
+    result = scan_session(session, cal_path, ScanOptions(), tmp_path / "cloud.ply", progress=False)
+    table_z, top_z = _surfaces(result.cloud.point.positions.numpy(), scene)
+    assert table_z.size > 1000 and top_z.size > 300
+    # The stripe's own noise at 25 grey levels: 0.32 mm (table) and 0.17 mm (top) in a dark
+    # cell (0.11 and 0.06 px at about 2.8 mm of depth per pixel).
+    assert np.sqrt(np.mean(table_z**2)) < 0.4
+    assert np.sqrt(np.mean((top_z - scene.step_mm) ** 2)) < 0.35
+    # The same sweep with the background left in: no line keeps the stripe, and the scan is
+    # refused with its reason instead of writing an empty cloud.
+    options = ScanOptions(stripe=StripeOptions(flatten_background=False))
+    with pytest.raises(InputError, match="no stripe points found in any of its 13 frames"):
+        scan_session(session, cal_path, options, tmp_path / "before.ply", progress=False)
+    assert not (tmp_path / "before.ply").exists()

@@ -124,3 +124,44 @@ def test_a_failed_scan_leaves_no_work_folder(tmp_path, capsys):
     assert images[2].name in capsys.readouterr().err
     assert not out.exists()
     assert not (out.parent / ".scanner-work").exists()
+
+
+@pytest.mark.parametrize(
+    ("amplitude", "reason"),
+    [
+        (0.0, "no stripe points found in any of its 5 frames; nothing written"),
+        (5000.0, "stripe points are flagged ("),
+    ],
+)
+def test_a_scan_with_no_point_to_keep_exits_2_and_keeps_the_old_cloud(
+    tmp_path, capsys, amplitude, reason
+):
+    # A sweep where the laser never shows, and one where it saturates every point.
+    session, cal, _ = write_table_step_sweep(
+        tmp_path / "s", scene=TableStepScene(amplitude=amplitude), x_mm=np.linspace(-20, 20, 5)
+    )
+    write_calibration(tmp_path / "cal.json", cal)
+    out = tmp_path / "cloud.ply"
+    out.write_bytes(b"an earlier cloud")
+    code = main(["scan", str(session), "--calibration", str(tmp_path / "cal.json"),
+                 "--out", str(out), "--quiet"])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 2
+    assert reason in err and str(session) in err
+    assert len(err.strip().splitlines()) == 1
+    assert out.read_bytes() == b"an earlier cloud"
+
+
+def test_uneven_background_is_taken_out_unless_kept(tmp_path, capsys):
+    scene = TableStepScene(amplitude=25.0, ambient_ramp=60.0)
+    session, cal, _ = write_table_step_sweep(
+        tmp_path / "lit", scene=scene, x_mm=np.linspace(-20, 20, 5)
+    )
+    write_calibration(tmp_path / "cal.json", cal)
+    args = ["scan", str(session), "--calibration", str(tmp_path / "cal.json"), "--quiet"]
+    for choice in ("auto", "remove"):
+        out = tmp_path / f"{choice}.ply"
+        assert main([*args, "--out", str(out), "--uneven-background", choice]) == 0
+        assert len(read_cloud(out).point.positions) > 500
+    assert main([*args, "--out", str(tmp_path / "keep.ply"), "--uneven-background", "keep"]) == 2
+    assert "no stripe points found" in capsys.readouterr().err
