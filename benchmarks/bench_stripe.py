@@ -83,8 +83,11 @@ def speed_table(shape: tuple[int, int] = SHAPE) -> None:
     cv2.setNumThreads(1)
     img, _ = _frame(0, shape=shape)
     noise = estimate_noise(img)
-    # As the pipeline runs a sweep: window and noise measured once, on a few frames.
-    fixed = StripeOptions(half_window_px=auto_half_window(img, noise), noise=noise)
+    # As the pipeline runs a sweep: window, noise and whether the background is taken out
+    # decided once, on a few frames (this frame's background is even).
+    fixed = StripeOptions(
+        half_window_px=auto_half_window(img, noise), noise=noise, flatten_background=False
+    )
     img_t = np.ascontiguousarray(img.T)
     calls = [
         ("frame.max()", lambda: img.max()),
@@ -132,7 +135,7 @@ def step_table() -> None:
     H, W = img.shape
     noise = estimate_noise(img)
     hw = auto_half_window(img, noise)
-    fixed = StripeOptions(half_window_px=hw, noise=noise)
+    fixed = StripeOptions(half_window_px=hw, noise=noise, flatten_background=False)
     # The candidate level as _primary_and_secondary sets it.
     grid = img[:: max(1, H // 32), :: max(1, W // 32)]
     level = stripe._median(grid) + max(fixed.k_noise * noise, 0.03 * 255.0)
@@ -240,7 +243,9 @@ def scene_speed_table(cell_dir: Path, frames: int) -> None:
     images = [session.load_laser_image(f) for f in session.frames[:frames]]
     first = images[0] if orientation == "rows" else np.ascontiguousarray(images[0].T)
     noise = estimate_noise(first)
-    fixed = StripeOptions(half_window_px=auto_half_window(first, noise), noise=noise)
+    fixed = StripeOptions(
+        half_window_px=auto_half_window(first, noise), noise=noise, flatten_background=False
+    )
     profiles = [extract_stripe(img, "fast", orientation, options=fixed) for img in images]
     saturated = np.mean([np.any(p.flags & StripeFlag.SATURATED) for p in profiles])
     several = np.mean([p.line.size > np.unique(p.line).size for p in profiles])
