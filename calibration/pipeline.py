@@ -67,7 +67,10 @@ METHODS = ("default", "paper")
 MIN_POSED_VIEWS = 3
 MAX_ORIGIN_STD_MM = 10.0
 """An estimated laser origin less certain than this is reported, not written to the file."""
-_ORIGIN_PEAKS = StripeOptions(min_relative_peak=0.02)
+# A lit printed target is no smooth background: the frames are searched as they are
+# (scanner.stripe.background).
+_TARGET_FRAMES = StripeOptions(flatten_background=False)
+_ORIGIN_PEAKS = StripeOptions(min_relative_peak=0.02, flatten_background=False)
 
 
 @dataclass(frozen=True)
@@ -194,7 +197,7 @@ def _progress(iterable: Any, enabled: bool, desc: str, total: int | None = None)
 def _extract(session: Session, frame: Frame) -> NDArray:
 
     image, background = session.load_laser_pair(frame)
-    prof = extract_stripe(image, mode="precise", background=background)
+    prof = extract_stripe(image, mode="precise", background=background, options=_TARGET_FRAMES)
     # Every peak is kept: the light-plane fit keeps, per frame, only the points on the target
     # that lie on one straight line, which drops print edges and reflections.
     return np.column_stack([prof.u, prof.v])

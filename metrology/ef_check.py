@@ -349,6 +349,7 @@ def measure_ef(
         mode=mode,
         orientation=orientation_from_calibration(calibration),
         background=background,
+        flatten_background=False,  # a lit printed target is no smooth background
     )
     clean = (prof.flags & _CLEAN) == prof.flags
     stripe_und = camera.undistort_pixels(prof.uv[clean]) if clean.any() else np.zeros((0, 2))

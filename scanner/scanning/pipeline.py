@@ -327,36 +327,36 @@ def _sweep_stripe_options(
     frames: Sequence[Frame], options: ScanOptions, orientation: str, probes: int = 5
 ) -> StripeOptions:
     """Fix the centre-of-gravity window, the noise level and whether an uneven background is
-    taken out once per sweep, from a few frames.
+    taken out once for the scan, from a few frames spread over it (all its sessions).
 
-    One window for the whole sweep keeps the estimator identical from frame to frame, and
-    none of them is then measured again on every frame. The background is taken out of every
-    frame without a laser-off frame where any probe's background is uneven
-    (:func:`scanner.stripe.background.background_is_uneven`).
-    """
+    One window keeps the estimator identical from frame to frame. The background is taken
+    out of every frame without a laser-off frame where any probe's is uneven
+    (:func:`scanner.stripe.background.background_is_uneven`), before the probes' window and
+    noise are measured."""
     stripe = options.stripe
     fixed = stripe.half_window_px is not None and stripe.noise is not None
     if (fixed and stripe.flatten_background is not None) or not frames:
         return stripe
     step = max(1, len(frames) // probes)
-    windows, noises, uneven = [], [], []
+    loaded = []  # (frame as searched, whether it has no laser-off frame)
     for f in frames[::step][:probes]:
         off_path = f.laser_off_image if options.use_laser_off else None
         img, off = load_laser_images(f.laser_image, off_path)  # type: ignore[arg-type]
-        if off is not None:
-            img = cv2.subtract(img, off)
-        else:
-            img, flattened = take_out_uneven_background(img, stripe)
-            uneven.append(flattened)
+        loaded.append((img, True) if off is None else (cv2.subtract(img, off), False))
+    flatten = stripe.flatten_background
+    if flatten is None:
+        flatten = any(take_out_uneven_background(img, stripe)[1] for img, bare in loaded if bare)
+    decided = replace(stripe, flatten_background=flatten)
+    windows, noises = [], []
+    for img, bare in loaded:
+        if bare:
+            img, _ = take_out_uneven_background(img, decided)
         work = img if orientation == "rows" else cv2.transpose(img)
         noise = estimate_noise(work)
         noises.append(noise)
         windows.append(auto_half_window(work, noise))
     hw = stripe.half_window_px if stripe.half_window_px is not None else int(np.median(windows))
     noise = stripe.noise if stripe.noise is not None else float(np.median(noises))
-    flatten = stripe.flatten_background
-    if flatten is None:
-        flatten = any(uneven)
     log.info(
         "sweep constants: half-window %d px, noise %.2f, background %s (from %d frames)",
         hw,
@@ -591,7 +591,9 @@ def scan_session(
     Raises
     ------
     InputError
-        Bad input, before any extraction (see :func:`check_scan_inputs`).
+        Bad input, before any extraction (see :func:`check_scan_inputs`); or, after it, a
+        sweep that leaves no point to keep (none found, all flagged or filtered out), before
+        anything is written.
     """
 
     t0 = time.perf_counter()
@@ -647,6 +649,7 @@ def scan_session(
         uv = np.column_stack([profiles["u"], profiles["v"]])
         points = tri.points_base(uv, profiles["frame"], poses)
         ok = np.all(np.isfinite(points), axis=1)
+        n_triangulated = int(np.count_nonzero(ok))
         if options.region_mm is not None:
             lo, hi = (np.asarray(c, dtype=np.float64) for c in options.region_mm)
             inside = np.all((points >= lo) & (points <= hi), axis=1)
@@ -715,22 +718,31 @@ def scan_session(
         n_points = len(cloud.point.positions)
         if n_points == 0:
             # Nothing to hand on: refused like bad input, before anything is written.
-            if n_stripe_points and removed:
+            n_found = len(profiles["u"])
+            if not n_found:
+                why = f"no stripe points found in any of the {len(frames)} frames"
+            elif not n_triangulated:
+                why = f"none of the {n_found} stripe points meets the light plane in front"
+            elif not n_stripe_points:
+                why = (
+                    f"none of the {n_triangulated} stripe points lies in the region or "
+                    "above the table cut"
+                )
+            elif not len(points):
                 reasons = ", ".join(f"{n} {k}" for k, n in removed.items())
                 why = (
                     f"all {n_stripe_points} stripe points are flagged ({reasons}); "
                     "--keep-flagged keeps them"
                 )
-            elif n_stripe_points:
-                why = f"all {n_stripe_points} stripe points were filtered out of the cloud"
-            elif len(profiles["u"]):
-                why = (
-                    f"none of the {len(profiles['u'])} stripe points lies in the region or "
-                    "above the table cut"
-                )
             else:
-                why = f"no stripe points found in any of its {len(frames)} frames"
-            raise InputError(sessions[0].root, f"{why}; nothing written")
+                why = (
+                    f"the cloud's filters (voxel, outliers, isolated points) removed all "
+                    f"{len(points)} points"
+                )
+            where = sessions[0].root if len(sessions) == 1 else None
+            if where is None:
+                why = f"{len(sessions)} sessions ({sessions[0].root}, ...): {why}"
+            raise InputError(where, f"{why}; nothing written")
 
         written = None
         if out_path is not None:

@@ -84,7 +84,7 @@ class StripeOptions:
         unevenly lit frame clears the threshold and is each line's brightest peak; ``None``:
         where the frame's own background varies by more than twice the contrast threshold
         (:func:`scanner.stripe.background.background_is_uneven`), which the virtual cell's
-        frames do not. A scan decides it once per sweep.
+        frames do not. A scan decides it once, from a few of its frames.
     end_lines : int
         Peaks fewer than this many lines from the end of their run of linked peaks (a run
         ending at the image's first or last line does not end there) get STRETCH_END; 0 (the

@@ -80,8 +80,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         choices=("auto", "remove", "keep"),
         default="auto",
         help="frames without laser-off frames: take a smooth background out of every frame "
-        "(remove), never (keep), or where the sweep's first frames show it uneven against the "
-        "stripe threshold (auto, the default)",
+        "(remove), never (keep), or where a few frames spread over the scan show it uneven "
+        "against the stripe threshold (auto, the default)",
     )
     p.add_argument("--workers", type=int, default=2, help="extraction threads (default 2)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -129,7 +129,7 @@ def test_a_failed_scan_leaves_no_work_folder(tmp_path, capsys):
 @pytest.mark.parametrize(
     ("amplitude", "reason"),
     [
-        (0.0, "no stripe points found in any of its 5 frames; nothing written"),
+        (0.0, "no stripe points found in any of the 5 frames; nothing written"),
         (5000.0, "stripe points are flagged ("),
     ],
 )

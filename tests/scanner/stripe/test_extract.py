@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from scanner.stripe.background import flatten_background
+from scanner.stripe.estimates import auto_half_window, estimate_noise
 from scanner.stripe.extract import (
     StripeFlag,
     StripeOptions,
@@ -13,7 +15,13 @@ from scanner.stripe.extract import (
     orientation_from_calibration,
     orientation_from_image,
 )
-from scanner.virtual_cell.analytic import StripeSegment, TableStepScene, render_stripes
+from scanner.virtual_cell.analytic import (
+    StripeSegment,
+    TableStepScene,
+    draw_stripe_conditions,
+    render_stripe_conditions,
+    render_stripes,
+)
 
 SHAPE = (240, 320)
 
@@ -501,3 +509,22 @@ def test_auto_half_window_is_the_median_width_as_numpy_takes_it(sigma, last_line
     assert widths.size in (14, 15)
     want = int(np.clip(np.rint(2.7 * float(np.median(widths)) / _FWHM_PER_SIGMA), 3, 20))
     assert auto_half_window(img, noise) == want
+
+
+def test_a_faint_narrow_stripe_gets_the_narrowest_window():
+    # Frame 22 of benchmarks/bench_stripe_domain.py: a 0.72 px sigma stripe 11 noise sigmas
+    # high on a shaded background. Its lines' windowed second moments scatter from 0 to 10 px
+    # (the noise's, not the stripe's): the window they gave (7 px) let noise peaks 3-16 px off
+    # the stripe become 69 trusted points.
+    c = draw_stripe_conditions(np.random.default_rng([0, 22]))
+    assert c.sigma_px < 0.75 and 10 < c.snr < 12
+    image, lines, pos = render_stripe_conditions(c, seed=22)
+    work = np.ascontiguousarray(image.T if c.orientation == "cols" else image)
+    flat = flatten_background(work, 255.0)
+    assert auto_half_window(flat, estimate_noise(flat)) == 3
+    p = extract_stripe(image, orientation=c.orientation)
+    truth = np.full(max(c.shape) + 1, np.nan)
+    truth[lines] = pos
+    err = (p.u if c.orientation == "rows" else p.v) - truth[p.line]
+    assert np.count_nonzero((p.flags == 0) & ~(np.abs(err) < 3.0)) == 0
+    assert np.isin(lines, p.line[np.abs(err) < 3.0]).mean() > 0.99
