@@ -35,7 +35,7 @@ from scanner.formats.clouds import _check_format, write_cloud
 from scanner.formats.session import Frame, Session, read_session
 from scanner.scanning.stitch import build_cloud, filter_cloud, incidence_cosines, refine_sweeps
 from scanner.scanning.triangulate import Triangulator
-from scanner.stripe.background import take_out_uneven_background
+from scanner.stripe.background import take_out_uneven_background, wants_flattening
 from scanner.stripe.extract import (
     MODES,
     StripeFlag,
@@ -345,7 +345,7 @@ def _sweep_stripe_options(
         loaded.append((img, True) if off is None else (cv2.subtract(img, off), False))
     flatten = stripe.flatten_background
     if flatten is None:
-        flatten = any(take_out_uneven_background(img, stripe)[1] for img, bare in loaded if bare)
+        flatten = any(wants_flattening(img, stripe) for img, bare in loaded if bare)
     decided = replace(stripe, flatten_background=flatten)
     windows, noises = [], []
     for img, bare in loaded:

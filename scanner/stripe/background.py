@@ -40,6 +40,7 @@ __all__ = [
     "background_is_uneven",
     "flatten_background",
     "take_out_uneven_background",
+    "wants_flattening",
 ]
 
 BLOCK_PX = 32
@@ -79,15 +80,22 @@ def take_out_uneven_background(
     flattened : bool
         Whether the background was taken out.
     """
-    flatten = options.flatten_background
-    if flatten is False:
+    if not wants_flattening(image, options, noise):
         return image, False
+    return flatten_background(image, _saturation_level(image, options)), True
+
+
+def wants_flattening(image: NDArray, options: StripeOptions, noise: float | None = None) -> bool:
+    """Whether :func:`take_out_uneven_background` takes the background out of ``image``: as
+    ``options.flatten_background`` says, or (``None``) where :func:`background_is_uneven`
+    against the contrast threshold of the frame's noise (``noise``, else ``options.noise``,
+    else estimated)."""
+    if options.flatten_background is not None:
+        return bool(options.flatten_background)
+    if noise is None:
+        noise = float(options.noise) if options.noise is not None else estimate_noise(image)
     level = _saturation_level(image, options)
-    if flatten is None:
-        if noise is None:
-            noise = float(options.noise) if options.noise is not None else estimate_noise(image)
-        flatten = background_is_uneven(image, contrast_threshold(image, options, noise, level))
-    return (flatten_background(image, level), True) if flatten else (image, False)
+    return background_is_uneven(image, contrast_threshold(image, options, noise, level))
 
 
 def background_spread(image: NDArray) -> float:
