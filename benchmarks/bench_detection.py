@@ -20,7 +20,12 @@ by a ring spacing or a quarter turn.
 Usage::
 
     python benchmarks/bench_detection.py [--views 200] [--empty 30] [--timing 10] [--repeat 3]
-        [--seed 0] [--seeds 1]
+        [--seed 0] [--seeds 1] [--session DIR [--session-views 20]]
+
+With ``--session DIR`` the target images of a calibration session folder (the contract's
+format: a virtual cell's, ``scanner simulate``, or a real capture) are timed as well, each the
+fastest of ``--repeat`` runs: a calibration session's own views are larger and carry more
+rings than most of the randomised domain's.
 
 With ``--seeds N`` the seeds ``--seed`` .. ``--seed + N - 1`` are drawn and their views summed
 in one report (a table per seed first); views are then named ``seed:index``.
@@ -33,6 +38,7 @@ import itertools
 import time
 from collections import Counter
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -40,6 +46,7 @@ import numpy as np
 from calibration.detection.detect import detect_target
 from calibration.detection.observations import TargetObservation
 from calibration.symmetry import relabel
+from scanner.formats.session import read_session
 from scanner.virtual_cell.randomised import (
     RenderedView,
     ViewConditions,
@@ -177,6 +184,40 @@ def rate_table(outcomes: list[Outcome]) -> str:
     return "\n".join(rows)
 
 
+def session_timing(root: Path, n_views: int, repeat: int) -> str:
+    """Time per target image of the calibration session at ``root`` (its first ``n_views``
+    target images, each the fastest of ``repeat`` runs, one thread), as a Markdown table."""
+    session = read_session(root)
+    if session.target is None:
+        raise SystemExit(f"{root}: expected a calibration session with a target, got none")
+    images = [f.target_image for f in session.frames if f.target_image is not None][:n_views]
+    if not images:
+        raise SystemExit(f"{root}: expected target images, got none")
+    cv2.setNumThreads(1)
+    times, found = [], 0
+    first = cv2.imread(str(images[0]), cv2.IMREAD_UNCHANGED)
+    detect_target(first, session.target)  # (compiled kernels loaded, not timed)
+    for path in images:
+        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        best = np.inf
+        for _ in range(repeat):
+            t0 = time.perf_counter()
+            obs = detect_target(image, session.target)
+            best = min(best, time.perf_counter() - t0)
+        times.append(best)
+        found += bool(obs)
+    t = np.asarray(times)
+    return (
+        f"### Time per image of the session {root} ({len(t)} target images "
+        f"{session.width}x{session.height}, {found} detected; one thread, the fastest of "
+        f"{repeat} runs each)\n\n"
+        "| mean s | median s | p95 s | max s | reference workload s |\n"
+        "|---:|---:|---:|---:|---:|\n"
+        f"| {t.mean():.3f} | {np.median(t):.3f} | {np.percentile(t, 95):.3f} | {t.max():.3f} | "
+        f"{reference_seconds():.4f} |\n"
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--views", type=int, default=200, help="views with a target, per seed")
@@ -187,6 +228,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--seed", type=int, default=0, help="the first seed")
     parser.add_argument("--seeds", type=int, default=1, help="seeds from --seed on, summed")
+    parser.add_argument(
+        "--session", type=Path, default=None, help="a calibration session whose views are timed"
+    )
+    parser.add_argument(
+        "--session-views", type=int, default=20, help="target images of --session timed"
+    )
     args = parser.parse_args(argv)
     if args.repeat < 1:
         parser.error(f"--repeat: expected at least 1, got {args.repeat}")
@@ -273,6 +320,8 @@ def main(argv: list[str] | None = None) -> int:
             f"{np.median(ref):.4f} | {t.mean() / np.median(ref):.2f} |\n\n"
             "Reference workload: sorting 2^20 seeded float64 values (np.sort), best of 3.\n"
         )
+    if args.session is not None:
+        print(session_timing(args.session, args.session_views, args.repeat))
     reasons = Counter(o.reason for o in outcomes + empty if not o.detected)
     print("### Refusal reasons (all views)\n")
     print("| reason | views (detectable) | views (not detectable) |\n|---|---:|---:|")

@@ -184,10 +184,12 @@ def _locate_centres(
 def _conic_point_on_ray(conic: NDArray, c: NDArray, dirs: NDArray) -> NDArray:
     """Positive t where ``c + t dir`` meets the conic, per direction (NaN if none)."""
     p0 = np.array([c[0], c[1], 1.0])
-    dh = np.column_stack([dirs, np.zeros(len(dirs))])
-    a = np.einsum("ij,jk,ik->i", dh, conic, dh)
-    b = 2 * dh @ (conic @ p0)
-    cc = float(p0 @ conic @ p0)
+    cp = conic @ p0
+    dx, dy = dirs[:, 0], dirs[:, 1]
+    # (dir, 0)^T C (dir, 0), 2 (dir, 0)^T C p0 and p0^T C p0 of the quadratic in t
+    a = conic[0, 0] * dx * dx + (conic[0, 1] + conic[1, 0]) * dx * dy + conic[1, 1] * dy * dy
+    b = 2.0 * (dx * cp[0] + dy * cp[1])
+    cc = float(p0 @ cp)
     disc = b * b - 4 * a * cc
     with np.errstate(invalid="ignore", divide="ignore"):
         sq = np.sqrt(disc)
@@ -392,6 +394,11 @@ def _nested_rings(conics: dict[int, NDArray], c: NDArray) -> dict[int, NDArray]:
     return {k: conics[k] for k in keys}
 
 
+#: The 16 directions :func:`_ratio_tolerance` measures a ring's radius along.
+_RATIO_ANGLES = np.linspace(0, 2 * np.pi, 16, endpoint=False)
+_RATIO_DIRS = np.column_stack([np.cos(_RATIO_ANGLES), np.sin(_RATIO_ANGLES)])
+
+
 def _ratio_tolerance(
     conic_i: NDArray, conic_j: NDArray, c: NDArray, expect: float, strict: bool
 ) -> float:
@@ -404,10 +411,8 @@ def _ratio_tolerance(
     proportion to the ratio, which would let a wrong inner ring pass against large outer ones.
     """
     sigma = 0.25 if strict else 1.0
-    angles = np.linspace(0, 2 * np.pi, 16, endpoint=False)
-    dirs = np.column_stack([np.cos(angles), np.sin(angles)])
-    r_i = float(np.mean(_conic_point_on_ray(conic_i, c, dirs)))
-    r_j = float(np.mean(_conic_point_on_ray(conic_j, c, dirs)))
+    r_i = float(np.mean(_conic_point_on_ray(conic_i, c, _RATIO_DIRS)))
+    r_j = float(np.mean(_conic_point_on_ray(conic_j, c, _RATIO_DIRS)))
     if not (np.isfinite(r_i) and np.isfinite(r_j)):
         return 0.0  # a conic that does not surround the centre: no ring of this pencil
     return 0.05 + 0.02 * min(expect, 4.0) + 2 * sigma * (1 / max(r_i, 1.0) + 1 / max(r_j, 1.0))

@@ -1,5 +1,6 @@
 import numpy as np
 import pytest
+from scipy.optimize import least_squares
 
 from calibration.detection.conics import (
     fit_conic,
@@ -37,6 +38,50 @@ def test_fit_conic_recovers_projected_circle():
     C *= np.sign(C[0, 0]) * np.sign(C_true[0, 0])
     # Sampson distances of the exact points to the fitted conic: at the noise level.
     assert np.sqrt(np.mean(sampson_distances(C, pts) ** 2)) < 0.01
+
+
+@pytest.mark.parametrize("arc_deg", [360.0, 120.0, 45.0])
+def test_fit_conic_reaches_the_sampson_minimum(arc_deg):
+    """The refinement (five directions orthogonal to the algebraic solution) ends where a
+    tightly converged fit of all six coefficients does, on whole rings and short arcs."""
+    rng = np.random.default_rng(int(arc_deg))
+    th = np.radians(np.linspace(0.0, arc_deg, 300, endpoint=False))
+    H = _homography()
+    x = H @ np.vstack([60 * np.cos(th), 60 * np.sin(th), np.ones_like(th)])
+    pts = (x[:2] / x[2]).T + rng.normal(0, 0.3, (len(th), 2))
+    fitted = fit_conic(pts)
+
+    def rms(coefficients: np.ndarray) -> float:
+        a, b, c, d, e, f = coefficients
+        conic = np.array([[a, b / 2, d / 2], [b / 2, c, e / 2], [d / 2, e / 2, f]])
+        return float(np.sqrt(np.mean(sampson_distances(conic, pts) ** 2)))
+
+    def resid(coefficients: np.ndarray) -> np.ndarray:
+        a, b, c, d, e, f = coefficients / np.linalg.norm(coefficients)
+        conic = np.array([[a, b / 2, d / 2], [b / 2, c, e / 2], [d / 2, e / 2, f]])
+        return sampson_distances(conic, pts)
+
+    start = fitted.copy()
+    start_coefficients = np.array(
+        [start[0, 0], 2 * start[0, 1], start[1, 1], 2 * start[0, 2], 2 * start[1, 2], start[2, 2]]
+    )
+    # The reference: every coefficient free, from a start well off the minimum.
+    perturbed = start_coefficients + rng.normal(0, 1e-3, 6) * np.abs(start_coefficients).max()
+    reference = least_squares(resid, perturbed, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
+    assert rms(start_coefficients) <= rms(reference.x) * (1 + 1e-6)
+    algebraic = fit_conic(pts, geometric=False)
+    assert rms(start_coefficients) < rms(
+        np.array(
+            [
+                algebraic[0, 0],
+                2 * algebraic[0, 1],
+                algebraic[1, 1],
+                2 * algebraic[0, 2],
+                2 * algebraic[1, 2],
+                algebraic[2, 2],
+            ]
+        )
+    )
 
 
 def test_fit_conic_refuses_too_few_points():
