@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from calibration.detection.observations import TargetObservation
+from scanner.core.jit import njit
 
 __all__ = ["PARAM_NAMES", "adjustment_covariances", "camera_matrix", "intrinsics_covariance"]
 
@@ -94,8 +95,69 @@ def _curve_points(kind: NDArray, radius: NDArray, psi: NDArray, fixed: NDArray) 
     return pts
 
 
+@njit(cache=True, nogil=True)
+def _pixel(params9, R, t, v, X, Y):  # pragma: no cover - compiled
+    """:func:`_project` of the target point ``(X, Y, 0)`` in view ``v``, the same arithmetic."""
+    fx, fy, cx, cy = params9[0], params9[1], params9[2], params9[3]
+    k1, k2, p1, p2, k3 = params9[4], params9[5], params9[6], params9[7], params9[8]
+    pc0 = R[v, 0, 0] * X + R[v, 0, 1] * Y + t[v, 0]
+    pc1 = R[v, 1, 0] * X + R[v, 1, 1] * Y + t[v, 1]
+    pc2 = R[v, 2, 0] * X + R[v, 2, 1] * Y + t[v, 2]
+    x = pc0 / pc2
+    y = pc1 / pc2
+    r2 = x * x + y * y
+    rad = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    return fx * xd + cx, fy * yd + cy
+
+
+@njit(cache=True, nogil=True)
+def _curve_point(kind, radius, psi, fixed, p):  # pragma: no cover - compiled
+    """:func:`_curve_points` of observation ``p``: its target point's x and y, mm."""
+    k = kind[p]
+    if k == _CIRCLE:
+        return radius[p] * np.cos(psi[p]), radius[p] * np.sin(psi[p])
+    if k == _XLINE:
+        return psi[p], 0.0
+    if k == _YLINE:
+        return 0.0, psi[p]
+    return fixed[p, 0], fixed[p, 1]
+
+
+@njit(cache=True, nogil=True)
+def _curve_pixels(params9, R, t, view, kind, radius, psi, fixed, out):  # pragma: no cover
+    """Each observation's target point at ``psi`` projected into its view: ``out`` (P, 2)."""
+    for p in range(view.shape[0]):
+        X, Y = _curve_point(kind, radius, psi, fixed, p)
+        out[p, 0], out[p, 1] = _pixel(params9, R, t, view[p], X, Y)
+
+
+@njit(cache=True, nogil=True)
+def _curve_residuals(
+    params9, R, t, view, kind, radius, psi, fixed, obs, nrm, slot, out
+):  # pragma: no cover - compiled
+    """The residuals at ``psi``: a curve point's distance along ``nrm`` into ``out[slot]``, a
+    fixed point's two pixel errors into ``out[slot]`` and ``out[slot + 1]``."""
+    for p in range(view.shape[0]):
+        X, Y = _curve_point(kind, radius, psi, fixed, p)
+        u, v = _pixel(params9, R, t, view[p], X, Y)
+        du = obs[p, 0] - u
+        dv = obs[p, 1] - v
+        if kind[p] == _POINT:
+            out[slot[p]] = du
+            out[slot[p] + 1] = dv
+        else:
+            out[slot[p]] = du * nrm[p, 0] + dv * nrm[p, 1]
+
+
 class _Problem:
-    """Residuals of every observation for the parameter vector (9 intrinsics + 6 per view)."""
+    """Residuals of every observation for the parameter vector (9 intrinsics + 6 per view).
+
+    The projections run in compiled kernels (:func:`_curve_pixels`, :func:`_curve_residuals`)
+    with :func:`_project`'s arithmetic, point by point, without the ``(P, 3, 3)`` copies of
+    each point's pose that the array form needs (most of a 20-view calibration's time).
+    """
 
     def __init__(self, data: _Data, n_views: int) -> None:
         self.d = data
@@ -103,25 +165,61 @@ class _Problem:
         self.curve = data.kind != _POINT
         self.is_point = ~self.curve
         # Residual layout: one per curve point, two per fixed point.
-        self.n_res = int(self.curve.sum() + 2 * self.is_point.sum())
+        nc = int(self.curve.sum())
+        self.n_res = nc + 2 * int(self.is_point.sum())
+        self.slot = np.empty(len(data.kind), dtype=np.int64)
+        self.slot[self.curve] = np.arange(nc)
+        self.slot[self.is_point] = nc + 2 * np.arange(int(self.is_point.sum()))
         self.step = np.where(data.kind == _CIRCLE, 1e-4, 1e-3)
+        for name in ("view", "kind"):
+            setattr(data, name, np.ascontiguousarray(getattr(data, name), dtype=np.int64))
+        for name in ("radius", "obs", "fixed"):
+            setattr(data, name, np.ascontiguousarray(getattr(data, name), dtype=np.float64))
 
     def unpack(self, x: NDArray) -> tuple[NDArray, NDArray, NDArray]:
         poses = x[9:].reshape(self.n_views, 6)
         R = Rotation.from_rotvec(poses[:, :3]).as_matrix()
         return x[:9], R, poses[:, 3:]
 
-    def _proj(self, x9: NDArray, Rp: NDArray, tp: NDArray, psi: NDArray) -> NDArray:
+    def _proj(self, x9: NDArray, R: NDArray, t: NDArray, psi: NDArray) -> NDArray:
+        """Pixels ``(P, 2)`` of every observation's target point at ``psi``, the views'
+        rotations ``R`` ``(V, 3, 3)`` and translations ``t`` ``(V, 3)``."""
         d = self.d
-        return _project(x9, Rp, tp, _curve_points(d.kind, d.radius, psi, d.fixed))
+        out = np.empty((len(psi), 2))
+        _curve_pixels(
+            np.ascontiguousarray(x9, dtype=np.float64), np.ascontiguousarray(R),
+            np.ascontiguousarray(t), d.view, d.kind, d.radius,
+            np.ascontiguousarray(psi, dtype=np.float64), d.fixed, out,
+        )  # fmt: skip
+        return out
+
+    def _residuals_along(self, x9: NDArray, R: NDArray, t: NDArray, nrm: NDArray) -> NDArray:
+        """The residuals ``(n_res,)`` at the curve parameters as they are, each curve point's
+        along its normal ``nrm`` ``(P, 2)`` (unit, fixed points' rows unused)."""
+        d = self.d
+        out = np.empty(self.n_res)
+        _curve_residuals(
+            np.ascontiguousarray(x9, dtype=np.float64), np.ascontiguousarray(R),
+            np.ascontiguousarray(t), d.view, d.kind, d.radius,
+            np.ascontiguousarray(d.psi, dtype=np.float64), d.fixed, d.obs, nrm, self.slot, out,
+        )  # fmt: skip
+        return out
+
+    def _normals(self, x9: NDArray, R: NDArray, t: NDArray) -> tuple[NDArray, NDArray]:
+        """Each observation's pixel ``(P, 2)`` and the unit normal ``(P, 2)`` of its curve's
+        image there (from the curve's tangent by a small step of its parameter)."""
+        p0 = self._proj(x9, R, t, self.d.psi)
+        tan = self._proj(x9, R, t, self.d.psi + self.step) - p0
+        nrm = np.column_stack([-tan[:, 1], tan[:, 0]])
+        nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
+        return p0, nrm
 
     def update_psi(self, x: NDArray, iterations: int = 2) -> None:
         d = self.d
         x9, R, t = self.unpack(x)
-        Rp, tp = R[d.view], t[d.view]
         for _ in range(iterations):
-            p0 = self._proj(x9, Rp, tp, d.psi)
-            p1 = self._proj(x9, Rp, tp, d.psi + self.step)
+            p0 = self._proj(x9, R, t, d.psi)
+            p1 = self._proj(x9, R, t, d.psi + self.step)
             tan = (p1 - p0) / self.step[:, None]
             g = np.einsum("pi,pi->p", p0 - d.obs, tan)
             hh = np.einsum("pi,pi->p", tan, tan)
@@ -129,55 +227,29 @@ class _Problem:
             d.psi = d.psi + upd
 
     def residuals(self, x: NDArray, update: bool = True) -> NDArray:
-        d = self.d
         if update:
             self.update_psi(x)
         x9, R, t = self.unpack(x)
-        Rp, tp = R[d.view], t[d.view]
-        p0 = self._proj(x9, Rp, tp, d.psi)
-        diff = d.obs - p0
-        out = np.empty(self.n_res)
-        nc = int(self.curve.sum())
-        if nc:
-            pc = self._proj(x9, Rp, tp, d.psi + self.step)
-            tan = pc - p0
-            nrm = np.column_stack([-tan[:, 1], tan[:, 0]])
-            nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
-            out[:nc] = np.einsum("pi,pi->p", diff, nrm)[self.curve]
-        if self.is_point.any():
-            out[nc:] = diff[self.is_point].ravel()
-        return out
+        _, nrm = self._normals(x9, R, t)
+        return self._residuals_along(x9, R, t, nrm)
 
     def residual_views(self) -> NDArray:
         d = self.d
         return np.concatenate([d.view[self.curve], np.repeat(d.view[self.is_point], 2)])
 
-    def jacobian(self, x: NDArray) -> NDArray:
+    def jacobian(self, x: NDArray) -> tuple[NDArray, NDArray, NDArray]:
         """Forward differences, all views' pose columns perturbed together (block-sparse).
 
         The curve parameters stay at their optimum and the residual directions fixed: at the
         optimum the distance's derivative is the partial one (envelope theorem).
         """
         d = self.d
-        pts = _curve_points(d.kind, d.radius, d.psi, d.fixed)
         x9, R, t = self.unpack(x)
-        p0 = _project(x9, R[d.view], t[d.view], pts)
-        pc = _project(
-            x9, R[d.view], t[d.view], _curve_points(d.kind, d.radius, d.psi + self.step, d.fixed)
-        )
-        tan = pc - p0
-        nrm = np.column_stack([-tan[:, 1], tan[:, 0]])
-        nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
+        _, nrm = self._normals(x9, R, t)
         curve, point = self.curve, self.is_point
-
-        def res(x9_: NDArray, R_: NDArray, t_: NDArray) -> NDArray:
-            diff = d.obs - _project(x9_, R_[d.view], t_[d.view], pts)
-            return np.concatenate(
-                [np.einsum("pi,pi->p", diff[curve], nrm[curve]), diff[point].ravel()]
-            )
-
-        r0 = res(x9, R, t)
+        r0 = self._residuals_along(x9, R, t, nrm)
         views = self.residual_views()
+        pts = _curve_points(d.kind, d.radius, d.psi, d.fixed)
         _, D = _project(x9, R[d.view], t[d.view], pts, parts=True)
         nc = int(curve.sum())
         Ji = np.empty((self.n_res, 9))
@@ -190,7 +262,7 @@ class _Problem:
             hk = np.abs(pp[:, k]) * 1e-7 + 1e-7
             pp[:, k] += hk
             Rk = Rotation.from_rotvec(pp[:, :3]).as_matrix() if k < 3 else R
-            Jp[:, k] = (res(x9, Rk, pp[:, 3:]) - r0) / hk[views]
+            Jp[:, k] = (self._residuals_along(x9, Rk, pp[:, 3:], nrm) - r0) / hk[views]
         return Ji, Jp, views
 
     def normal_equations(self, x: NDArray, r: NDArray, w: NDArray) -> tuple[NDArray, NDArray]:

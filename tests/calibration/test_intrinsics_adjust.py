@@ -3,7 +3,15 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from calibration.extrinsics import pose_covariance_as_turns
-from calibration.intrinsics_adjust import PARAM_NAMES, _adjust, adjustment_covariances
+from calibration.intrinsics_adjust import (
+    PARAM_NAMES,
+    _adjust,
+    _curve_points,
+    _Data,
+    _Problem,
+    _project,
+    adjustment_covariances,
+)
 from tests.calibration._observations import DIST_TRUE, K_TRUE, poses, synthetic_observation
 
 NOISE_PX = 0.3
@@ -89,3 +97,36 @@ def _free_camera_chi2(
         float(np.mean(marginal)),
         float(d @ np.linalg.solve(intrinsics_cov, d)),
     )
+
+
+def test_the_compiled_projection_is_the_array_form():
+    """Every kind of observation (ring, x and y diameter, fixed point) projects in the
+    compiled kernels as :func:`_project` projects it, and the residuals are its distances."""
+    rng = np.random.default_rng(5)
+    n_views, per_view = 4, 40
+    view = np.repeat(np.arange(n_views), per_view)
+    kind = rng.integers(0, 4, view.size)
+    radius = np.where(kind == 0, rng.uniform(10, 80, view.size), 0.0)
+    fixed = np.column_stack([rng.uniform(-60, 60, (view.size, 2)), np.zeros(view.size)])
+    psi = rng.uniform(-3, 3, view.size)
+    data = _Data(view, kind, radius, rng.uniform(0, 1000, (view.size, 2)), fixed, psi)
+    prob = _Problem(data, n_views)
+    rotvecs = rng.normal(0, 0.3, (n_views, 3))
+    translations = np.column_stack([rng.normal(0, 30, (n_views, 2)), rng.uniform(300, 600, 4)])
+    x = np.r_[K_TRUE[0, 0], K_TRUE[1, 1], K_TRUE[0, 2], K_TRUE[1, 2], DIST_TRUE[:5]]
+    x = np.r_[x, np.column_stack([rotvecs, translations]).ravel()]
+    x9, R, t = prob.unpack(x)
+    pts = _curve_points(kind, radius, psi, fixed)
+    expected = _project(x9, R[view], t[view], pts)
+    assert np.allclose(prob._proj(x9, R, t, psi), expected, rtol=0, atol=1e-9)
+    # The residuals: along the curve's normal for curve points, both pixel errors for points.
+    res = prob.residuals(x, update=False)
+    diff = data.obs - expected
+    ahead = _project(x9, R[view], t[view], _curve_points(kind, radius, psi + prob.step, fixed))
+    tangent = ahead - expected
+    normal = np.column_stack([-tangent[:, 1], tangent[:, 0]])
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True).clip(1e-300)
+    curve = kind != 3
+    along = np.einsum("pi,pi->p", diff, normal)[curve]
+    assert np.allclose(res[: curve.sum()], along, rtol=0, atol=1e-9)
+    assert np.allclose(res[curve.sum() :], diff[~curve].ravel(), rtol=0, atol=1e-9)
