@@ -216,17 +216,16 @@ def _stripe_line_inliers(
     """The points on the frame's dominant straight line (in the target plane), RANSAC + TLS."""
     pt = transform_points(np.linalg.inv(cam_from_target), points_cam)[:, :2]
     rng = np.random.default_rng(0)
-    best = np.zeros(len(pt), bool)
-    for _ in range(100):
-        i, j = rng.choice(len(pt), 2, replace=False)
-        d = pt[j] - pt[i]
-        norm = float(np.hypot(*d))
-        if norm < 1e-6:
-            continue
-        normal = np.array([-d[1], d[0]]) / norm
-        inl = np.abs((pt - pt[i]) @ normal) < threshold_mm
-        if inl.sum() > best.sum():
-            best = inl
+    # 100 lines through pairs of points, all judged at once: the first with the most inliers.
+    pairs = np.array([rng.choice(len(pt), 2, replace=False) for _ in range(100)])
+    d = pt[pairs[:, 1]] - pt[pairs[:, 0]]
+    norm = np.hypot(d[:, 0], d[:, 1])
+    usable = norm >= 1e-6
+    normal = np.column_stack([-d[:, 1], d[:, 0]]) / np.where(usable, norm, 1.0)[:, None]
+    offset = pt[None, :, :] - pt[pairs[:, 0]][:, None, :]  # (100, N, 2)
+    inliers = np.abs(offset @ normal[:, :, None])[:, :, 0] < threshold_mm
+    counts = np.where(usable, inliers.sum(axis=1), 0)
+    best = inliers[int(np.argmax(counts))] if counts.max() > 0 else np.zeros(len(pt), bool)
     for _ in range(3):
         if best.sum() < 2:
             break
