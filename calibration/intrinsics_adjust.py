@@ -171,10 +171,6 @@ class _Problem:
         self.slot[self.curve] = np.arange(nc)
         self.slot[self.is_point] = nc + 2 * np.arange(int(self.is_point.sum()))
         self.step = np.where(data.kind == _CIRCLE, 1e-4, 1e-3)
-        for name in ("view", "kind"):
-            setattr(data, name, np.ascontiguousarray(getattr(data, name), dtype=np.int64))
-        for name in ("radius", "obs", "fixed"):
-            setattr(data, name, np.ascontiguousarray(getattr(data, name), dtype=np.float64))
 
     def unpack(self, x: NDArray) -> tuple[NDArray, NDArray, NDArray]:
         poses = x[9:].reshape(self.n_views, 6)
@@ -205,14 +201,14 @@ class _Problem:
         )  # fmt: skip
         return out
 
-    def _normals(self, x9: NDArray, R: NDArray, t: NDArray) -> tuple[NDArray, NDArray]:
-        """Each observation's pixel ``(P, 2)`` and the unit normal ``(P, 2)`` of its curve's
-        image there (from the curve's tangent by a small step of its parameter)."""
+    def _normals(self, x9: NDArray, R: NDArray, t: NDArray) -> NDArray:
+        """The unit normal ``(P, 2)`` of each observation's curve image at its point (from
+        the curve's tangent by a small step of its parameter; 0 for fixed points)."""
         p0 = self._proj(x9, R, t, self.d.psi)
         tan = self._proj(x9, R, t, self.d.psi + self.step) - p0
         nrm = np.column_stack([-tan[:, 1], tan[:, 0]])
         nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
-        return p0, nrm
+        return nrm
 
     def update_psi(self, x: NDArray, iterations: int = 2) -> None:
         d = self.d
@@ -230,7 +226,7 @@ class _Problem:
         if update:
             self.update_psi(x)
         x9, R, t = self.unpack(x)
-        _, nrm = self._normals(x9, R, t)
+        nrm = self._normals(x9, R, t)
         return self._residuals_along(x9, R, t, nrm)
 
     def residual_views(self) -> NDArray:
@@ -245,7 +241,7 @@ class _Problem:
         """
         d = self.d
         x9, R, t = self.unpack(x)
-        _, nrm = self._normals(x9, R, t)
+        nrm = self._normals(x9, R, t)
         curve, point = self.curve, self.is_point
         r0 = self._residuals_along(x9, R, t, nrm)
         views = self.residual_views()
