@@ -46,6 +46,7 @@ import numpy as np
 from calibration.detection.detect import detect_target
 from calibration.detection.observations import TargetObservation
 from calibration.symmetry import relabel
+from scanner.core.images import load_gray_image
 from scanner.formats.session import read_session
 from scanner.virtual_cell.randomised import (
     RenderedView,
@@ -186,7 +187,8 @@ def rate_table(outcomes: list[Outcome]) -> str:
 
 def session_timing(root: Path, n_views: int, repeat: int) -> str:
     """Time per target image of the calibration session at ``root`` (its first ``n_views``
-    target images, each the fastest of ``repeat`` runs, one thread), as a Markdown table."""
+    target images, each the fastest of ``repeat`` runs, one thread), as a Markdown table.
+    Images are read as ``scanner calibrate`` reads them, outside the timed call."""
     session = read_session(root)
     if session.target is None:
         raise SystemExit(f"{root}: expected a calibration session with a target, got none")
@@ -195,10 +197,10 @@ def session_timing(root: Path, n_views: int, repeat: int) -> str:
         raise SystemExit(f"{root}: expected target images, got none")
     cv2.setNumThreads(1)
     times, found = [], 0
-    first = cv2.imread(str(images[0]), cv2.IMREAD_UNCHANGED)
+    first = load_gray_image(images[0])
     detect_target(first, session.target)  # (compiled kernels loaded, not timed)
     for path in images:
-        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        image = load_gray_image(path)
         best = np.inf
         for _ in range(repeat):
             t0 = time.perf_counter()

@@ -4,6 +4,7 @@ from scipy.spatial.transform import Rotation
 
 from calibration.extrinsics import pose_covariance_as_turns
 from calibration.intrinsics_adjust import (
+    _POINT,
     PARAM_NAMES,
     _adjust,
     _curve_points,
@@ -112,7 +113,9 @@ def test_the_compiled_projection_is_the_array_form():
     data = _Data(view, kind, radius, rng.uniform(0, 1000, (view.size, 2)), fixed, psi)
     prob = _Problem(data, n_views)
     rotvecs = rng.normal(0, 0.3, (n_views, 3))
-    translations = np.column_stack([rng.normal(0, 30, (n_views, 2)), rng.uniform(300, 600, 4)])
+    translations = np.column_stack(
+        [rng.normal(0, 30, (n_views, 2)), rng.uniform(300, 600, n_views)]
+    )
     x = np.r_[K_TRUE[0, 0], K_TRUE[1, 1], K_TRUE[0, 2], K_TRUE[1, 2], DIST_TRUE[:5]]
     x = np.r_[x, np.column_stack([rotvecs, translations]).ravel()]
     x9, R, t = prob.unpack(x)
@@ -126,7 +129,7 @@ def test_the_compiled_projection_is_the_array_form():
     tangent = ahead - expected
     normal = np.column_stack([-tangent[:, 1], tangent[:, 0]])
     normal /= np.linalg.norm(normal, axis=1, keepdims=True).clip(1e-300)
-    curve = kind != 3
+    curve = kind != _POINT
     along = np.einsum("pi,pi->p", diff, normal)[curve]
     assert np.allclose(res[: curve.sum()], along, rtol=0, atol=1e-9)
     assert np.allclose(res[curve.sum() :], diff[~curve].ravel(), rtol=0, atol=1e-9)

@@ -3,6 +3,7 @@ import pytest
 from scipy.optimize import least_squares
 
 from calibration.detection.conics import (
+    conic_from_coefficients,
     fit_conic,
     fit_line,
     harmonic_conjugate,
@@ -52,36 +53,39 @@ def test_fit_conic_reaches_the_sampson_minimum(arc_deg):
     fitted = fit_conic(pts)
 
     def rms(coefficients: np.ndarray) -> float:
-        a, b, c, d, e, f = coefficients
-        conic = np.array([[a, b / 2, d / 2], [b / 2, c, e / 2], [d / 2, e / 2, f]])
+        conic = conic_from_coefficients(coefficients)
         return float(np.sqrt(np.mean(sampson_distances(conic, pts) ** 2)))
 
     def resid(coefficients: np.ndarray) -> np.ndarray:
-        a, b, c, d, e, f = coefficients / np.linalg.norm(coefficients)
-        conic = np.array([[a, b / 2, d / 2], [b / 2, c, e / 2], [d / 2, e / 2, f]])
-        return sampson_distances(conic, pts)
+        return sampson_distances(conic_from_coefficients(coefficients), pts)
 
-    start = fitted.copy()
-    start_coefficients = np.array(
-        [start[0, 0], 2 * start[0, 1], start[1, 1], 2 * start[0, 2], 2 * start[1, 2], start[2, 2]]
-    )
-    # The reference: every coefficient free, from a start well off the minimum.
-    perturbed = start_coefficients + rng.normal(0, 1e-3, 6) * np.abs(start_coefficients).max()
-    reference = least_squares(resid, perturbed, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
-    assert rms(start_coefficients) <= rms(reference.x) * (1 + 1e-6)
-    algebraic = fit_conic(pts, geometric=False)
-    assert rms(start_coefficients) < rms(
-        np.array(
+    def coefficients_of(conic: np.ndarray) -> np.ndarray:
+        return np.array(
             [
-                algebraic[0, 0],
-                2 * algebraic[0, 1],
-                algebraic[1, 1],
-                2 * algebraic[0, 2],
-                2 * algebraic[1, 2],
-                algebraic[2, 2],
+                conic[0, 0],
+                2 * conic[0, 1],
+                conic[1, 1],
+                2 * conic[0, 2],
+                2 * conic[1, 2],
+                conic[2, 2],
             ]
         )
-    )
+
+    fitted_coefficients = coefficients_of(fitted)
+    # The reference: every coefficient free, from a start well off the minimum.
+    perturbed = fitted_coefficients + rng.normal(0, 1e-3, 6) * np.abs(fitted_coefficients).max()
+    reference = least_squares(resid, perturbed, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
+    assert rms(fitted_coefficients) <= rms(reference.x) * (1 + 1e-6)
+    assert rms(fitted_coefficients) < rms(coefficients_of(fit_conic(pts, geometric=False)))
+
+
+def test_fit_conic_through_five_points_is_exact():
+    # Five points fix a conic: the fit is the one through them (the null vector of a 5x6
+    # design, which a thin SVD leaves out).
+    pts, C_true = _circle_image(_homography(), 60.0, n=5)
+    C = fit_conic(pts)
+    assert np.max(np.abs(sampson_distances(C, pts))) < 1e-6
+    assert np.allclose(C * np.sign(C[0, 0]), C_true * np.sign(C_true[0, 0]), atol=1e-9)
 
 
 def test_fit_conic_refuses_too_few_points():
