@@ -80,21 +80,6 @@ def _project(
     return uv, D
 
 
-def _curve_points(kind: NDArray, radius: NDArray, psi: NDArray, fixed: NDArray) -> NDArray:
-    pts = fixed.copy()
-    c = kind == _CIRCLE
-    pts[c, 0] = radius[c] * np.cos(psi[c])
-    pts[c, 1] = radius[c] * np.sin(psi[c])
-    xl = kind == _XLINE
-    pts[xl, 0] = psi[xl]
-    pts[xl, 1] = 0.0
-    yl = kind == _YLINE
-    pts[yl, 0] = 0.0
-    pts[yl, 1] = psi[yl]
-    pts[c | xl | yl, 2] = 0.0
-    return pts
-
-
 @njit(cache=True, nogil=True)
 def _pixel(params9, R, t, v, X, Y):  # pragma: no cover - compiled
     """:func:`_project` of the target point ``(X, Y, 0)`` in view ``v``, the same arithmetic."""
@@ -114,7 +99,8 @@ def _pixel(params9, R, t, v, X, Y):  # pragma: no cover - compiled
 
 @njit(cache=True, nogil=True)
 def _curve_point(kind, radius, psi, fixed, p):  # pragma: no cover - compiled
-    """:func:`_curve_points` of observation ``p``: its target point's x and y, mm."""
+    """Observation ``p``'s target point (x, y) mm: on its ring at angle ``psi``, on the x or
+    y diameter at ``psi`` mm, or its fixed point."""
     k = kind[p]
     if k == _CIRCLE:
         return radius[p] * np.cos(psi[p]), radius[p] * np.sin(psi[p])
@@ -149,6 +135,52 @@ def _curve_residuals(
             out[slot[p] + 1] = dv
         else:
             out[slot[p]] = du * nrm[p, 0] + dv * nrm[p, 1]
+
+
+@njit(cache=True, nogil=True)
+def _intrinsics_jacobian(
+    params9, R, t, view, kind, radius, psi, fixed, nrm, slot, out
+):  # pragma: no cover - compiled
+    """Each residual's derivative by the nine intrinsics into ``out`` (n_res, 9):
+    :func:`_project`'s ``parts``, times minus the normal for a curve point, minus itself for
+    each of a fixed point's two pixel errors."""
+    fx, fy = params9[0], params9[1]
+    k1, k2, p1, p2, k3 = params9[4], params9[5], params9[6], params9[7], params9[8]
+    d = np.empty((2, 9))
+    for p in range(view.shape[0]):
+        X, Y = _curve_point(kind, radius, psi, fixed, p)
+        v = view[p]
+        pc0 = R[v, 0, 0] * X + R[v, 0, 1] * Y + t[v, 0]
+        pc1 = R[v, 1, 0] * X + R[v, 1, 1] * Y + t[v, 1]
+        pc2 = R[v, 2, 0] * X + R[v, 2, 1] * Y + t[v, 2]
+        x = pc0 / pc2
+        y = pc1 / pc2
+        r2 = x * x + y * y
+        rad = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        d[:, :] = 0.0
+        d[0, 0] = x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        d[1, 1] = y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        d[0, 2] = 1.0
+        d[1, 3] = 1.0
+        r4 = r2 * r2
+        d[0, 4] = fx * x * r2
+        d[1, 4] = fy * y * r2
+        d[0, 5] = fx * x * r4
+        d[1, 5] = fy * y * r4
+        d[0, 8] = fx * x * (r4 * r2)
+        d[1, 8] = fy * y * (r4 * r2)
+        d[0, 6] = fx * 2 * x * y
+        d[1, 6] = fy * (r2 + 2 * y * y)
+        d[0, 7] = fx * (r2 + 2 * x * x)
+        d[1, 7] = fy * 2 * x * y
+        row = slot[p]
+        if kind[p] == _POINT:
+            for j in range(9):
+                out[row, j] = -d[0, j]
+                out[row + 1, j] = -d[1, j]
+        else:
+            for j in range(9):
+                out[row, j] = -(d[0, j] * nrm[p, 0] + d[1, j] * nrm[p, 1])
 
 
 class _Problem:
@@ -242,15 +274,14 @@ class _Problem:
         d = self.d
         x9, R, t = self.unpack(x)
         nrm = self._normals(x9, R, t)
-        curve, point = self.curve, self.is_point
         r0 = self._residuals_along(x9, R, t, nrm)
         views = self.residual_views()
-        pts = _curve_points(d.kind, d.radius, d.psi, d.fixed)
-        _, D = _project(x9, R[d.view], t[d.view], pts, parts=True)
-        nc = int(curve.sum())
         Ji = np.empty((self.n_res, 9))
-        Ji[:nc] = -np.einsum("pij,pi->pj", D[curve], nrm[curve])
-        Ji[nc:] = -D[point].reshape(-1, 9)
+        _intrinsics_jacobian(
+            np.ascontiguousarray(x9, dtype=np.float64), np.ascontiguousarray(R),
+            np.ascontiguousarray(t), d.view, d.kind, d.radius,
+            np.ascontiguousarray(d.psi, dtype=np.float64), d.fixed, nrm, self.slot, Ji,
+        )  # fmt: skip
         Jp = np.empty((self.n_res, 6))
         poses = x[9:].reshape(self.n_views, 6)
         for k in range(6):

@@ -4,10 +4,12 @@ from scipy.spatial.transform import Rotation
 
 from calibration.extrinsics import pose_covariance_as_turns
 from calibration.intrinsics_adjust import (
+    _CIRCLE,
     _POINT,
+    _XLINE,
+    _YLINE,
     PARAM_NAMES,
     _adjust,
-    _curve_points,
     _Data,
     _Problem,
     _project,
@@ -16,6 +18,24 @@ from calibration.intrinsics_adjust import (
 from tests.calibration._observations import DIST_TRUE, K_TRUE, poses, synthetic_observation
 
 NOISE_PX = 0.3
+
+
+def _curve_points(
+    kind: np.ndarray, radius: np.ndarray, psi: np.ndarray, fixed: np.ndarray
+) -> np.ndarray:
+    """The observations' target points ``(P, 3)`` in array form: what the kernels are held to."""
+    pts = fixed.copy()
+    c = kind == _CIRCLE
+    pts[c, 0] = radius[c] * np.cos(psi[c])
+    pts[c, 1] = radius[c] * np.sin(psi[c])
+    xl = kind == _XLINE
+    pts[xl, 0] = psi[xl]
+    pts[xl, 1] = 0.0
+    yl = kind == _YLINE
+    pts[yl, 0] = 0.0
+    pts[yl, 1] = psi[yl]
+    pts[c | xl | yl, 2] = 0.0
+    return pts
 
 
 def _pose_errors(views: list[np.ndarray], fixed: tuple[str, ...], rng: np.random.Generator):
@@ -133,3 +153,11 @@ def test_the_compiled_projection_is_the_array_form():
     along = np.einsum("pi,pi->p", diff, normal)[curve]
     assert np.allclose(res[: curve.sum()], along, rtol=0, atol=1e-9)
     assert np.allclose(res[curve.sum() :], diff[~curve].ravel(), rtol=0, atol=1e-9)
+    # The residuals' derivatives by the intrinsics: the array form's parts along the normal.
+    _, parts = _project(x9, R[view], t[view], pts, parts=True)
+    d_intrinsics = prob.jacobian(x)[0]
+    along_parts = -np.einsum("pij,pi->pj", parts[curve], normal[curve])
+    assert np.allclose(d_intrinsics[: curve.sum()], along_parts, rtol=1e-12, atol=1e-9)
+    assert np.allclose(
+        d_intrinsics[curve.sum() :], -parts[~curve].reshape(-1, 9), rtol=1e-12, atol=1e-9
+    )
