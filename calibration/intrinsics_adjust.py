@@ -81,9 +81,9 @@ def _project(
 
 
 @njit(cache=True, nogil=True)
-def _pixel(params9, R, t, v, X, Y):  # pragma: no cover - compiled
-    """:func:`_project` of the target point ``(X, Y, 0)`` in view ``v``, the same arithmetic."""
-    fx, fy, cx, cy = params9[0], params9[1], params9[2], params9[3]
+def _distorted(params9, R, t, v, X, Y):  # pragma: no cover - compiled
+    """The target point ``(X, Y, 0)`` in view ``v``: its normalised image ``x, y``, their
+    ``r2`` and the distorted ``xd, yd``, with :func:`_project`'s arithmetic."""
     k1, k2, p1, p2, k3 = params9[4], params9[5], params9[6], params9[7], params9[8]
     pc0 = R[v, 0, 0] * X + R[v, 0, 1] * Y + t[v, 0]
     pc1 = R[v, 1, 0] * X + R[v, 1, 1] * Y + t[v, 1]
@@ -94,7 +94,14 @@ def _pixel(params9, R, t, v, X, Y):  # pragma: no cover - compiled
     rad = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
     xd = x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
     yd = y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-    return fx * xd + cx, fy * yd + cy
+    return x, y, r2, xd, yd
+
+
+@njit(cache=True, nogil=True)
+def _pixel(params9, R, t, v, X, Y):  # pragma: no cover - compiled
+    """:func:`_project` of the target point ``(X, Y, 0)`` in view ``v``, the same arithmetic."""
+    _, _, _, xd, yd = _distorted(params9, R, t, v, X, Y)
+    return params9[0] * xd + params9[2], params9[1] * yd + params9[3]
 
 
 @njit(cache=True, nogil=True)
@@ -145,21 +152,13 @@ def _intrinsics_jacobian(
     :func:`_project`'s ``parts``, times minus the normal for a curve point, minus itself for
     each of a fixed point's two pixel errors."""
     fx, fy = params9[0], params9[1]
-    k1, k2, p1, p2, k3 = params9[4], params9[5], params9[6], params9[7], params9[8]
     d = np.empty((2, 9))
     for p in range(view.shape[0]):
         X, Y = _curve_point(kind, radius, psi, fixed, p)
-        v = view[p]
-        pc0 = R[v, 0, 0] * X + R[v, 0, 1] * Y + t[v, 0]
-        pc1 = R[v, 1, 0] * X + R[v, 1, 1] * Y + t[v, 1]
-        pc2 = R[v, 2, 0] * X + R[v, 2, 1] * Y + t[v, 2]
-        x = pc0 / pc2
-        y = pc1 / pc2
-        r2 = x * x + y * y
-        rad = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        x, y, r2, xd, yd = _distorted(params9, R, t, view[p], X, Y)
         d[:, :] = 0.0
-        d[0, 0] = x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-        d[1, 1] = y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        d[0, 0] = xd
+        d[1, 1] = yd
         d[0, 2] = 1.0
         d[1, 3] = 1.0
         r4 = r2 * r2
