@@ -14,6 +14,8 @@ from numpy.typing import NDArray
 
 from calibration.detection.conics import intersect_lines
 from calibration.detection.hough import hough_lines
+from calibration.detection.map_kernels import bright_seeds, darkness_maps, kept_components
+from calibration.detection.morphology import from_levels, grey_morphology, to_levels
 from calibration.detection.ray_kernels import (
     FIT_TOL_FRACTION,
     FIT_TOL_PX,
@@ -51,10 +53,9 @@ def _darkness(
     # (integer images keep their own levels: see _grey_morphology)
     levels = img if img.dtype in (np.uint8, np.uint16) else img32
     bg = np.maximum(_grey_morphology(levels, (cv2.MORPH_CLOSE, se)), img32)
-    d = 1.0 - img32 / np.maximum(bg, 1e-6)
     lit = _lit_level(bg, hidden)
-    d[bg < 0.3 * lit] = 0.0
-    return np.clip(d, 0.0, 1.0).astype(np.float64), bg.astype(np.float64), lit
+    d, bg64 = darkness_maps(img32, bg, 0.3 * lit)
+    return d, bg64, lit
 
 
 def _grey_morphology(img: NDArray, *steps: tuple[int, NDArray]) -> NDArray:
@@ -72,7 +73,7 @@ def _grey_morphology(img: NDArray, *steps: tuple[int, NDArray]) -> NDArray:
     if img.dtype in (np.uint8, np.uint16):
         out = img
         for op, se in steps:
-            out = cv2.morphologyEx(out, op, se)
+            out = grey_morphology(out, op, se)
         return out.astype(np.float32)
     img32 = np.asarray(img, dtype=np.float32)
     lo, hi = float(np.min(img32)), float(np.max(img32))
@@ -86,17 +87,13 @@ def _grey_morphology(img: NDArray, *steps: tuple[int, NDArray]) -> NDArray:
     if not usable:
         out = img32
         for op, se in steps:
-            out = cv2.morphologyEx(out, op, se)
+            out = grey_morphology(out, op, se)
         return out
-    scaled = (img32 - np.float32(lo)) * np.float32(1.0 / scale)
-    own = np.rint(np.clip(scaled, 0.0, 65535.0, out=scaled), out=scaled).astype(np.uint16)
+    own = to_levels(img32, np.float32(lo), np.float32(1.0 / scale))
     levels = own
     for op, se in steps:
-        levels = cv2.morphologyEx(levels, op, se)
-    out = levels.astype(np.float32) * np.float32(scale) + np.float32(lo)
-    same = levels == own
-    out[same] = img32[same]
-    return out
+        levels = grey_morphology(levels, op, se)
+    return from_levels(levels, own, img32, np.float32(scale), np.float32(lo))
 
 
 def _lit_level(bg: NDArray, hidden: NDArray | None = None) -> float:
@@ -153,25 +150,29 @@ def _bright_mask(img: NDArray, kernel_px: int) -> NDArray:
     # (lightly smoothed: the noise drops about threefold, a stripe keeps most of its height)
     smooth = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 1.0)
     paper = _grey_morphology(smooth, (cv2.MORPH_CLOSE, se), (cv2.MORPH_OPEN, se))
-    above = smooth - paper
-    step = max(1, int(np.sqrt(above.size / 200_000)))
-    sub_above, sub_paper = above[::step, ::step], paper[::step, ::step]
+    step = max(1, int(np.sqrt(paper.size / 200_000)))
+    sub_paper = paper[::step, ::step]
+    sub_above = smooth[::step, ::step] - sub_paper
     # The noise of the lit paper, not of dark surroundings (which would pull it to zero).
     lit = sub_paper > 0.5 * _lit_level(sub_paper)
     sample = sub_above[lit] if np.count_nonzero(lit) >= 100 else sub_above.ravel()
     noise = 1.4826 * float(np.median(np.abs(sample - np.median(sample))))
-    core = above > np.maximum(paper * 0.12 + 0.02 * float(np.median(sub_paper)), 3.5 * noise)
-    # Over bright paper a stripe clips at the image's top before it is 12 % over the paper.
-    core |= (img >= 0.99 * float(img.max())) & (above > 3.5 * noise)
-    # ... and its glow (the beam's tails, the blur) reaches further: all that is still over
-    # the noise and connected to such a core is taken with it.
-    weak = (above > 2.0 * noise) | core
-    n, labels = cv2.connectedComponents(weak.astype(np.uint8), connectivity=8)
-    keep = np.zeros(n, dtype=bool)
-    keep[labels[core]] = True
-    keep[0] = False
-    bright = keep[labels]
-    bright = cv2.dilate(bright.astype(np.uint8), np.ones((3, 3), np.uint8))
+    # A core: 12 % over the paper and 3.5 noise levels. Over bright paper a stripe clips at
+    # the image's top before it is 12 % over the paper: there, 3.5 noise levels. Its glow
+    # (the beam's tails, the blur) reaches further: all that is still 2 noise levels over
+    # the paper and connected to a core ("weak") is taken with it.
+    core, weak = bright_seeds(
+        smooth,
+        paper,
+        img,
+        gain=0.12,
+        offset=0.02 * float(np.median(sub_paper)),
+        core_min=3.5 * noise,
+        clip_level=0.99 * float(img.max()),
+        weak_min=2.0 * noise,
+    )
+    n, labels = cv2.connectedComponents(weak, connectivity=8)
+    bright = cv2.dilate(kept_components(labels, core, n), np.ones((3, 3), np.uint8))
     return bright.astype(np.float64)
 
 
