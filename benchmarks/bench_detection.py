@@ -20,7 +20,10 @@ by a ring spacing or a quarter turn.
 Usage::
 
     python benchmarks/bench_detection.py [--views 200] [--empty 30] [--timing 10] [--repeat 3]
-        [--seed 0] [--seeds 1] [--session DIR [--session-views 20]]
+        [--seed 0] [--seeds 1] [--session DIR [--session-views 20]] [--default-malloc]
+
+The C allocator is set as the ``scanner`` command sets it (:mod:`scanner.core.memory`: freed
+image-sized blocks kept for reuse, no page faults); ``--default-malloc`` leaves it as it is.
 
 With ``--session DIR`` the target images of a calibration session folder (the contract's
 format: a virtual cell's, ``scanner simulate``, or a real capture) are timed as well, each the
@@ -47,6 +50,7 @@ from calibration.detection.detect import detect_target
 from calibration.detection.observations import TargetObservation
 from calibration.symmetry import relabel
 from scanner.core.images import load_gray_image
+from scanner.core.memory import keep_freed_memory
 from scanner.formats.session import read_session
 from scanner.virtual_cell.randomised import (
     RenderedView,
@@ -236,9 +240,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--session-views", type=int, default=20, help="target images of --session timed"
     )
+    parser.add_argument(
+        "--default-malloc",
+        action="store_true",
+        help="leave the C allocator as it is (the scanner command sets it: scanner.core.memory)",
+    )
     args = parser.parse_args(argv)
     if args.repeat < 1:
         parser.error(f"--repeat: expected at least 1, got {args.repeat}")
+    kept = False if args.default_malloc else keep_freed_memory()
+    print(f"Allocator: {'freed blocks kept (as scanner runs)' if kept else 'left as it is'}.\n")
 
     seeds = list(range(args.seed, args.seed + max(args.seeds, 1)))
     outcomes: list[Outcome] = []

@@ -27,6 +27,7 @@ from scanner.app.commands import (
     target,
 )
 from scanner.app.commands.judge import ACCEPTANCE, MEASURE
+from scanner.core.memory import keep_freed_memory
 
 #: The sub-commands in the order ``scanner --help`` lists them.
 COMMANDS = (
@@ -69,6 +70,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    keep_freed_memory()  # (image-sized temporaries reuse their pages: scanner.core.memory)
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(

@@ -33,6 +33,8 @@ from typing import TypeVar
 
 import cv2
 
+from scanner.core.memory import keep_freed_memory
+
 __all__ = ["process_map", "process_pool", "thread_map", "thread_pool"]
 
 T = TypeVar("T")
@@ -54,6 +56,7 @@ def _init_worker(parent: int) -> None:
     for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")
     cv2.setNumThreads(1)
+    keep_freed_memory()  # (as the command does: scanner.core.memory)
     # The parent's pid is passed in: a worker still starting when the parent dies would
     # already read its new parent (pid 1) from os.getppid().
     threading.Thread(target=_exit_with, args=(parent,), name="parent-watch", daemon=True).start()
