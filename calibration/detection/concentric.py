@@ -94,6 +94,7 @@ from calibration.detection.conics import (
     fit_conic,
     sampson_distances,
 )
+from calibration.detection.map_kernels import line_maps
 from calibration.detection.observations import TargetObservation
 from calibration.detection.ray_kernels import FIT_TOL_PX
 from scanner.core.images import to_gray_float
@@ -348,10 +349,8 @@ def _coarse_maps(
     d, bg, lit, hidden = _coarse_darkness(img, kernel)
     # Darkness over its local noise threshold (> Z_LINE where a printed line may be).
     thr_map, state.floor = _threshold_map(d, bg, 4 * kernel, hidden, state.floor, lit)
-    z = d / thr_map
-    mask = (z > Z_LINE).astype(np.uint8) * 255
     # Rays stop where the print is hidden (laser stripe, glare): see label_rays.
-    z_rays = np.where(hidden, -1.0, z)
+    mask, z_rays = line_maps(d, thr_map, hidden, Z_LINE)
     hough = _hough_lines(mask, min_votes=int(0.08 * min(h, w)))
     lines = _distinct_lines(hough, (w, h), HOUGH_LINES)
     z_rays.flags.writeable = False  # shared by every pass

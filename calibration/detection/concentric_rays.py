@@ -14,7 +14,12 @@ from numpy.typing import NDArray
 
 from calibration.detection.conics import intersect_lines
 from calibration.detection.hough import hough_lines
-from calibration.detection.map_kernels import bright_seeds, darkness_maps, kept_components
+from calibration.detection.map_kernels import (
+    bright_seeds,
+    darkness_maps,
+    every_nth_selected,
+    kept_components,
+)
 from calibration.detection.morphology import from_levels, grey_morphology, to_levels
 from calibration.detection.ray_kernels import (
     FIT_TOL_FRACTION,
@@ -198,11 +203,12 @@ def _noise_threshold(d: NDArray, live: NDArray | None = None) -> float:
     no paper noise, and over the whole image they would drive the MAD to zero. (0 where most
     of them are: :func:`_threshold_map` sets a floor.)
     """
-    sel = d[live] if live is not None else d.ravel()
-    if sel.size < 100:
-        sel = d.ravel()
-    step = max(1, sel.size // 200_000)
-    sel = sel[::step]
+    # Every ``step``-th of them (at most about 200,000), in the image's order.
+    n = d.size if live is None else int(np.count_nonzero(live))
+    if live is None or n < 100:
+        sel = d.ravel()[:: max(1, d.size // 200_000)]
+    else:
+        sel = every_nth_selected(d, live, max(1, n // 200_000))
     med = float(np.median(sel))
     mad = float(np.median(np.abs(sel - med))) * 1.4826
     return med + 6.0 * mad
@@ -233,7 +239,7 @@ def _threshold_map(
 
     Returns
     -------
-    ndarray, shape (H, W), and float
+    ndarray, shape (H, W), float32, and float
         The threshold map and the floor it used.
     """
     h, w = d.shape
@@ -251,7 +257,7 @@ def _threshold_map(
     ny, nx = max(1, h // t), max(1, w // t)
     th, tw = (h // ny) // 2 * 2, (w // nx) // 2 * 2
     # Every other pixel is enough for the statistics (and halves the work).
-    sub = np.where(live, d, np.nan)[: ny * th : 2, : nx * tw : 2]
+    sub = np.where(live[: ny * th : 2, : nx * tw : 2], d[: ny * th : 2, : nx * tw : 2], np.nan)
     blocks = sub.reshape(ny, sub.shape[0] // ny, nx, sub.shape[1] // nx).transpose(0, 2, 1, 3)
     blocks = blocks.reshape(ny, nx, -1)
     count = np.sum(np.isfinite(blocks), axis=2)
@@ -260,7 +266,8 @@ def _threshold_map(
     thr = tile_thresholds(blocks)
     enough = count >= 0.25 * blocks.shape[2]
     thr = np.where(enough & np.isfinite(thr), np.maximum(thr, floor), glob).astype(np.float32)
-    return cv2.resize(thr, (w, h), interpolation=cv2.INTER_LINEAR).astype(np.float64), floor
+    # (float32: a float64 darkness divided by it is the same as by its float64 copy)
+    return cv2.resize(thr, (w, h), interpolation=cv2.INTER_LINEAR), floor
 
 
 # --------------------------------------------------------------------------------------------

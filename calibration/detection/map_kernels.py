@@ -16,7 +16,13 @@ from numpy.typing import NDArray
 
 from scanner.core.jit import HAVE_NUMBA, njit
 
-__all__ = ["bright_seeds", "darkness_maps", "kept_components"]
+__all__ = [
+    "bright_seeds",
+    "darkness_maps",
+    "every_nth_selected",
+    "kept_components",
+    "line_maps",
+]
 
 
 @njit(cache=True, nogil=True)
@@ -171,3 +177,91 @@ def kept_components(labels: NDArray, core: NDArray, n: int) -> NDArray:
         keep[0] = False
         return keep[lab].astype(np.uint8)
     return _kept_components(lab, c, int(n))
+
+
+@njit(cache=True, nogil=True)
+def _line_maps(d, thr, hidden, z_line):  # pragma: no cover - compiled
+    h, w = d.shape
+    mask = np.empty((h, w), np.uint8)
+    z_rays = np.empty((h, w), np.float64)
+    for y in range(h):
+        for x in range(w):
+            z = d[y, x] / np.float64(thr[y, x])
+            mask[y, x] = 255 if z > z_line else 0
+            z_rays[y, x] = -1.0 if hidden[y, x] else z
+    return mask, z_rays
+
+
+def line_maps(d: NDArray, thr: NDArray, hidden: NDArray, z_line: float) -> tuple[NDArray, NDArray]:
+    """The darkness over its threshold ``z = d / thr``: the line mask (255 where ``z >
+    z_line``) and the rays' map (``z``, -1 where ``hidden``).
+
+    Parameters
+    ----------
+    d : ndarray, shape (H, W), float64
+    thr : ndarray, shape (H, W), float32 or float64
+        The threshold map (divided in float64).
+    hidden : ndarray, shape (H, W), bool
+    z_line : float
+
+    Returns
+    -------
+    mask : ndarray, shape (H, W), uint8
+    z_rays : ndarray, shape (H, W), float64
+    """
+    dd = np.ascontiguousarray(d, dtype=np.float64)
+    t = np.ascontiguousarray(thr)
+    hid = np.ascontiguousarray(hidden, dtype=np.bool_)
+    if not (dd.shape == t.shape == hid.shape and dd.ndim == 2):
+        raise ValueError(
+            f"d, thr, hidden: expected one (H, W) shape, got {dd.shape}, {t.shape}, {hid.shape}"
+        )
+    if not HAVE_NUMBA:  # pragma: no cover - numba is a dependency
+        z = dd / t
+        return (z > z_line).astype(np.uint8) * 255, np.where(hid, -1.0, z)
+    return _line_maps(dd, t, hid, float(z_line))
+
+
+@njit(cache=True, nogil=True)
+def _every_nth_selected(values, selected, step):  # pragma: no cover - compiled
+    v = values.ravel()
+    sel = selected.ravel()
+    count = 0
+    for i in range(v.size):
+        if sel[i]:
+            count += 1
+    out = np.empty((count + step - 1) // step, v.dtype)
+    seen = 0
+    m = 0
+    for i in range(v.size):
+        if sel[i]:
+            if seen % step == 0:
+                out[m] = v[i]
+                m += 1
+            seen += 1
+    return out
+
+
+def every_nth_selected(values: NDArray, selected: NDArray, step: int) -> NDArray:
+    """``values[selected][::step]`` without the whole selection's copy.
+
+    Parameters
+    ----------
+    values : ndarray, shape (H, W)
+    selected : ndarray, shape (H, W), bool
+    step : int
+        At least 1.
+
+    Returns
+    -------
+    ndarray, shape (ceil(count / step),), ``values``' type
+    """
+    v = np.ascontiguousarray(values)
+    sel = np.ascontiguousarray(selected, dtype=np.bool_)
+    if v.shape != sel.shape:
+        raise ValueError(f"values, selected: expected one shape, got {v.shape}, {sel.shape}")
+    if int(step) < 1:
+        raise ValueError(f"step: expected at least 1, got {step}")
+    if not HAVE_NUMBA:  # pragma: no cover - numba is a dependency
+        return v[sel][:: int(step)]
+    return _every_nth_selected(v, sel, int(step))

@@ -5,7 +5,13 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from calibration.detection.map_kernels import bright_seeds, darkness_maps, kept_components
+from calibration.detection.map_kernels import (
+    bright_seeds,
+    darkness_maps,
+    every_nth_selected,
+    kept_components,
+    line_maps,
+)
 
 
 def test_the_darkness_maps_are_the_array_expressions() -> None:
@@ -62,3 +68,29 @@ def test_kept_components_are_those_holding_a_core() -> None:
     want[5:10, 5:20] = 1
     want[35:38, 2:48] = 1
     np.testing.assert_array_equal(got, want)
+
+
+def test_the_line_maps_are_the_array_expressions_with_either_threshold_type() -> None:
+    rng = np.random.default_rng(9)
+    d = np.abs(rng.normal(0.0, 0.05, (60, 75)))
+    thr = rng.uniform(0.01, 0.03, d.shape).astype(np.float32)
+    hidden = rng.random(d.shape) < 0.1
+    z_line = 2.0
+    d[0, 0] = z_line * float(thr[0, 0])  # on the line's level: not over it
+    z = d / thr.astype(np.float64)
+    for t in (thr, thr.astype(np.float64)):
+        mask, z_rays = line_maps(d, t, hidden, z_line)
+        np.testing.assert_array_equal(mask, (z > z_line).astype(np.uint8) * 255)
+        np.testing.assert_array_equal(z_rays, np.where(hidden, -1.0, z))
+    assert 0 < np.mean(mask > 0) < 1
+
+
+def test_every_nth_selected_is_the_strided_selection() -> None:
+    rng = np.random.default_rng(1)
+    values = rng.normal(size=(37, 41))
+    selected = rng.random(values.shape) < 0.6
+    for step in (1, 2, 7, 10_000):
+        np.testing.assert_array_equal(
+            every_nth_selected(values, selected, step), values[selected][::step]
+        )
+    assert every_nth_selected(values, np.zeros(values.shape, bool), 3).shape == (0,)
