@@ -4,8 +4,8 @@ The stages work on whole images: the ring detector alone makes dozens of full-im
 temporaries per view (a 1280x1024 float64 map is 10 MiB). glibc's ``malloc`` hands blocks of
 that size out as fresh ``mmap`` pages and gives them back to the kernel when they are freed,
 so every such array is paid again in page faults: the kernel zeroes and maps each 4 KiB page
-on its first touch (about 1.5 us a page here, 4 ms for each 10 MiB map: 5000-11000 faults and
-7-15 % of a detection's time, ``benchmarks/RESULTS.md``, fortieth session). Told to serve
+on its first touch (about 1.5 us a page here, 4 ms for each 10 MiB map; 7000-11000 faults, so
+3-5 % of a detection's time, ``benchmarks/RESULTS.md``, fortieth session). Told to serve
 blocks up to 32 MiB from its heap and to keep up to 256 MiB of freed heap for reuse,
 ``malloc`` hands the same pages out again and a detection makes no page fault at all; what
 is computed does not change.
