@@ -171,6 +171,11 @@ def kept_components(labels: NDArray, core: NDArray, n: int) -> NDArray:
     c = np.ascontiguousarray(core, dtype=np.bool_)
     if lab.shape != c.shape or lab.ndim != 2:
         raise ValueError(f"labels, core: expected one (H, W) shape, got {lab.shape}, {c.shape}")
+    if int(n) < 1 or (lab.size and not 0 <= int(lab.min()) <= int(lab.max()) < int(n)):
+        raise ValueError(
+            f"labels: expected labels 0 .. n - 1 with n = {n} >= 1, got "
+            f"{lab.min() if lab.size else None} .. {lab.max() if lab.size else None}"
+        )
     if not HAVE_NUMBA:  # pragma: no cover - numba is a dependency
         keep = np.zeros(int(n), dtype=bool)
         keep[lab[c]] = True
@@ -179,7 +184,7 @@ def kept_components(labels: NDArray, core: NDArray, n: int) -> NDArray:
     return _kept_components(lab, c, int(n))
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")  # (a 0 threshold gives inf, as in NumPy)
 def _line_maps(d, thr, hidden, z_line):  # pragma: no cover - compiled
     h, w = d.shape
     mask = np.empty((h, w), np.uint8)

@@ -14,8 +14,9 @@ instead of the element's area, in rolling buffers of ``rows`` image rows.
 
 The values are OpenCV's to the bit (a maximum or minimum only picks values): the element's
 anchor is its centre, and pixels beyond the image are left out, as OpenCV's default border
-(:func:`cv2.morphologyDefaultBorderValue`) leaves them out. Other elements (even sizes,
-other shapes) and other image types go to OpenCV.
+(:func:`cv2.morphologyDefaultBorderValue`) leaves out every finite value. Other elements
+(even sizes, other shapes), other image types, empty images and float images holding a
+value that is not finite (OpenCV's border, the largest float, then takes part) go to OpenCV.
 """
 
 from __future__ import annotations
@@ -131,9 +132,9 @@ def _by_rows(img, radii, row_index, take_max):  # pragma: no cover - compiled
 _TYPES = (np.uint8, np.uint16, np.float32)
 
 #: OpenCV's time grows with the element's points times the pixel's bytes, the rows' way with
-#: the element's size: below this product (a 15 px ellipse in 8 bits, 11 px in 16 bits, 9 px
-#: in float32) OpenCV is the faster (``tests/calibration/detection/test_morphology.py`` times
-#: neither; the crossover was measured on 1280x1024 images, 2026-12-02).
+#: the element's size: below this product (ellipses up to 15 px in 8 bits, 11 px in 16 bits,
+#: 7 px in float32) OpenCV is the faster (measured on 1280x1024 images, 2026-12-02; the tests
+#: time neither).
 ROWS_FROM_POINT_BYTES = 200
 
 
@@ -147,6 +148,8 @@ def _apply(img: NDArray, se: NDArray, take_max: bool) -> NDArray:
         or not HAVE_NUMBA
         or np.count_nonzero(se) * a.dtype.itemsize < ROWS_FROM_POINT_BYTES
         or np.all(half_widths == half_widths[0])  # a rectangle: OpenCV splits it, faster
+        or a.size == 0
+        or (a.dtype == np.float32 and not np.isfinite(a).all())
     ):
         op = cv2.dilate if take_max else cv2.erode
         return op(a, np.asarray(se, dtype=np.uint8))
@@ -173,13 +176,35 @@ def dilate(img: NDArray, se: NDArray) -> NDArray:
 
 
 def erode(img: NDArray, se: NDArray) -> NDArray:
-    """``cv2.erode(img, se)``: as :func:`dilate`, with the minimum."""
+    """``cv2.erode(img, se)``: as :func:`dilate`, with the minimum.
+
+    Parameters
+    ----------
+    img : ndarray, shape (H, W), uint8, uint16 or float32
+    se : ndarray, shape (k, k)
+
+    Returns
+    -------
+    ndarray, shape (H, W), ``img``'s type
+    """
     return _apply(img, se, False)
 
 
 def grey_morphology(img: NDArray, op: int, se: NDArray) -> NDArray:
     """``cv2.morphologyEx(img, op, se)`` for ``cv2.MORPH_CLOSE`` (a dilation, then an erosion)
-    and ``cv2.MORPH_OPEN`` (the other way round); any other operation goes to OpenCV."""
+    and ``cv2.MORPH_OPEN`` (the other way round); any other operation goes to OpenCV.
+
+    Parameters
+    ----------
+    img : ndarray, shape (H, W), uint8, uint16 or float32
+    op : int
+        An OpenCV morphology operation (``cv2.MORPH_*``).
+    se : ndarray, shape (k, k)
+
+    Returns
+    -------
+    ndarray, shape (H, W), ``img``'s type
+    """
     if op == cv2.MORPH_CLOSE:
         return erode(dilate(img, se), se)
     if op == cv2.MORPH_OPEN:
@@ -227,6 +252,8 @@ def to_levels(img: NDArray, lo: np.float32, inv_scale: np.float32) -> NDArray:
     ndarray, shape (H, W), uint16
     """
     a = np.ascontiguousarray(img, dtype=np.float32)
+    if a.ndim != 2:
+        raise ValueError(f"img: expected shape (H, W), got {a.shape}")
     lo32, inv32 = np.float32(lo), np.float32(inv_scale)
     if not HAVE_NUMBA:  # pragma: no cover - numba is a dependency
         scaled = (a - lo32) * inv32
@@ -252,6 +279,11 @@ def from_levels(
     ndarray, shape (H, W), float32
     """
     a = np.ascontiguousarray(img, dtype=np.float32)
+    if not (np.shape(levels) == np.shape(own) == a.shape and a.ndim == 2):
+        raise ValueError(
+            f"levels, own, img: expected one (H, W) shape, got {np.shape(levels)}, "
+            f"{np.shape(own)}, {a.shape}"
+        )
     s32, lo32 = np.float32(scale), np.float32(lo)
     if not HAVE_NUMBA:  # pragma: no cover - numba is a dependency
         out = levels.astype(np.float32) * s32 + lo32

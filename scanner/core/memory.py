@@ -1,25 +1,28 @@
 """The C allocator told to keep freed image-sized blocks for the next array.
 
 The stages work on whole images: the ring detector alone makes dozens of full-image
-temporaries per view (a 1280x1024 float64 map is 10 MiB). glibc's ``malloc`` hands blocks of
-that size out as fresh ``mmap`` pages and gives them back to the kernel when they are freed,
-so every such array is paid again in page faults: the kernel zeroes and maps each 4 KiB page
-on its first touch (about 1.5 us a page here, 4 ms for each 10 MiB map; 7000-11000 faults, so
-3-5 % of a detection's time, ``benchmarks/RESULTS.md``, fortieth session). Told to serve
+temporaries per view (a 1280x1024 float64 map is 10 MiB). glibc's ``malloc`` serves blocks
+of that size from its heap once one has been freed (its mmap threshold rises), but it gives
+the freed top of the heap back to the kernel whenever that passes twice the largest block
+freed so far, and the next maps are then paid again in page faults: the kernel zeroes and
+maps each 4 KiB page on its first touch (about 1.5 us a page here; 7000-11000 faults per
+detection, so 3-5 % of its time, ``benchmarks/RESULTS.md``, fortieth session). Told to serve
 blocks up to 32 MiB from its heap and to keep up to 256 MiB of freed heap for reuse,
 ``malloc`` hands the same pages out again and a detection makes no page fault at all; what
 is computed does not change.
 
-:func:`keep_freed_memory` is process-wide (the allocator is the process's), so the
-application calls it where a process starts: the ``scanner`` command, the worker processes
-(:mod:`scanner.core.parallel`) and the benchmarks; a library call of the stages leaves the
-caller's allocator as it is. Where the C library is not glibc it does nothing.
+The price is memory: a process keeps up to :data:`KEEP_FREED_BYTES` of freed heap instead
+of returning it (its resident size stays near its peak, plus that much at most). The setting
+is process-wide (the allocator is the process's), so the application makes it where one of
+its processes starts: the ``scanner`` command (every command, the PLC service included) and
+the worker processes of :mod:`scanner.core.parallel`, and the detection benchmark; a library
+call of the stages leaves its caller's allocator as it is, and so do the Dask workers of the
+batch runner (started by Dask's nanny). Where the C library is not glibc it does nothing.
 """
 
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import logging
 
 __all__ = ["KEEP_FREED_BYTES", "MMAP_FROM_BYTES", "keep_freed_memory"]
@@ -49,13 +52,12 @@ def keep_freed_memory() -> bool:
     if _done is not None:
         return _done
     _done = False
-    name = ctypes.util.find_library("c")
     try:
-        libc = ctypes.CDLL(name) if name else None
-        mallopt = None if libc is None else getattr(libc, "mallopt", None)
-        gnu = None if libc is None else getattr(libc, "gnu_get_libc_version", None)
+        libc = ctypes.CDLL(None)  # (the process's own symbols: its C library's among them)
     except OSError:
         return _done
+    mallopt = getattr(libc, "mallopt", None)
+    gnu = getattr(libc, "gnu_get_libc_version", None)
     if mallopt is None or gnu is None:  # not glibc (musl, macOS): left as it is
         return _done
     mallopt.argtypes = (ctypes.c_int, ctypes.c_int)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+import pytest
 
 from calibration.detection.map_kernels import (
     bright_seeds,
@@ -68,6 +69,8 @@ def test_kept_components_are_those_holding_a_core() -> None:
     want[5:10, 5:20] = 1
     want[35:38, 2:48] = 1
     np.testing.assert_array_equal(got, want)
+    with pytest.raises(ValueError, match="expected labels"):
+        kept_components(labels, core, n - 1)  # (a label beyond the table)
 
 
 def test_the_line_maps_are_the_array_expressions_with_either_threshold_type() -> None:
@@ -77,7 +80,10 @@ def test_the_line_maps_are_the_array_expressions_with_either_threshold_type() ->
     hidden = rng.random(d.shape) < 0.1
     z_line = 2.0
     d[0, 0] = z_line * float(thr[0, 0])  # on the line's level: not over it
-    z = d / thr.astype(np.float64)
+    thr[1, 1] = 0.0  # (never from the threshold map: its floor is above 0) inf, not an error
+    with np.errstate(divide="ignore"):
+        z = d / thr.astype(np.float64)
+    assert np.isinf(z[1, 1])
     for t in (thr, thr.astype(np.float64)):
         mask, z_rays = line_maps(d, t, hidden, z_line)
         np.testing.assert_array_equal(mask, (z > z_line).astype(np.uint8) * 255)

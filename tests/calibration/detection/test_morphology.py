@@ -110,3 +110,30 @@ def test_the_16_bit_levels_are_numpys_arithmetic() -> None:
     assert got.dtype == np.float32
     np.testing.assert_array_equal(got, back)
     assert 0 < same.mean() < 1  # both kinds of pixel were there
+    with pytest.raises(ValueError, match="expected one"):
+        from_levels(levels, own[:5, :5], img, np.float32(scale), lo32)
+
+
+def test_the_dispatcher_keeps_opencvs_values_for_every_type_and_odd_input() -> None:
+    # Every type through the public calls; a float image holding values that are not finite
+    # (OpenCV's border, the largest float, then takes part), an empty image and a 1-D array
+    # go to OpenCV and come back as OpenCV gives them (or fail as it fails).
+    rng = np.random.default_rng(13)
+    for dtype in (np.uint8, np.uint16, np.float32):
+        img = _image(rng, (97, 120), dtype)
+        for k in (7, 15, 31):
+            se = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+            for op in (cv2.MORPH_CLOSE, cv2.MORPH_OPEN):
+                np.testing.assert_array_equal(
+                    grey_morphology(img, op, se), cv2.morphologyEx(img, op, se)
+                )
+    se = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (25, 25))
+    for bad in (np.inf, -np.inf, np.nan):
+        img = _image(rng, (60, 64), np.float32)
+        img[10:14, 20:30] = bad
+        for op in (cv2.MORPH_CLOSE, cv2.MORPH_OPEN):
+            np.testing.assert_array_equal(
+                grey_morphology(img, op, se), cv2.morphologyEx(img, op, se)
+            )
+    with pytest.raises(cv2.error):
+        dilate(np.zeros((0, 5), np.float32), se)
