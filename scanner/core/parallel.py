@@ -14,9 +14,9 @@ without the GIL, so two threads keep both cores busy without that second's start
 300-frame sweep the scan took 1.8-1.9 s with threads against 4.1 s with processes).
 :func:`thread_map` runs independent fits on such threads, at most N at a time, each started
 after the cancellation check a plain loop would make: the distortion model's fold fits
-(their projections are compiled kernels that release the GIL: 8.3 s -> 6.9-7.1 s for the
-intrinsics of a 20-view session; the uncertainty's re-solves, which hold the GIL longer, were
-slower on threads and stay in turn).
+(their projections and derivatives are compiled kernels that release the GIL: 6.4 s on one
+thread -> 5.2-5.4 s on two for the intrinsics of a 20-view session, thirty-ninth session; the
+uncertainty's re-solves, which hold the GIL longer, were slower on threads and stay in turn).
 """
 
 from __future__ import annotations
