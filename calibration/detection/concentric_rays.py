@@ -27,6 +27,7 @@ from calibration.detection.ray_kernels import (
     label_rays,
     tile_thresholds,
 )
+from scanner.core.selection import median
 
 #: The darkness threshold's floor (:func:`_threshold_map`) is the lit paper's own noise level,
 #: between these two: one grey level of an 8-bit image at the paper's level (no fainter print
@@ -120,7 +121,7 @@ def _lit_level(bg: NDArray, hidden: NDArray | None = None) -> float:
     u8 = np.clip(sub * (255.0 / top), 0, 255).astype(np.uint8)
     t, _ = cv2.threshold(u8, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
     bright = sub[u8 > t]
-    return float(np.median(bright)) if bright.size else top
+    return median(bright) if bright.size else top
 
 
 def _live_mask(bg: NDArray, lit: float, hidden: NDArray | None = None) -> NDArray:
@@ -161,7 +162,7 @@ def _bright_mask(img: NDArray, kernel_px: int) -> NDArray:
     # The noise of the lit paper, not of dark surroundings (which would pull it to zero).
     lit = sub_paper > 0.5 * _lit_level(sub_paper)
     sample = sub_above[lit] if np.count_nonzero(lit) >= 100 else sub_above.ravel()
-    noise = 1.4826 * float(np.median(np.abs(sample - np.median(sample))))
+    noise = 1.4826 * median(np.abs(sample - median(sample)))
     # A core: 12 % over the paper and 3.5 noise levels. Over bright paper a stripe clips at
     # the image's top before it is 12 % over the paper: there, 3.5 noise levels. Its glow
     # (the beam's tails, the blur) reaches further: all that is still 2 noise levels over
@@ -171,7 +172,7 @@ def _bright_mask(img: NDArray, kernel_px: int) -> NDArray:
         paper,
         img,
         gain=0.12,
-        offset=0.02 * float(np.median(sub_paper)),
+        offset=0.02 * median(sub_paper.ravel()),
         core_min=3.5 * noise,
         clip_level=0.99 * float(img.max()),
         weak_min=2.0 * noise,
@@ -209,8 +210,8 @@ def _noise_threshold(d: NDArray, live: NDArray | None = None) -> float:
         sel = d.ravel()[:: max(1, d.size // 200_000)]
     else:
         sel = every_nth_selected(d, live, max(1, n // 200_000))
-    med = float(np.median(sel))
-    mad = float(np.median(np.abs(sel - med))) * 1.4826
+    med = median(sel)
+    mad = median(np.abs(sel - med)) * 1.4826
     return med + 6.0 * mad
 
 
