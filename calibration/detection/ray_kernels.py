@@ -340,52 +340,61 @@ def _bspline3_weights(f):  # pragma: no cover - compiled
     )
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _spline_point(coef, y, x, cval):  # pragma: no cover - compiled
-    """The spline with coefficients ``coef`` at row ``y``, column ``x`` (``cval`` outside)."""
-    h, w = coef.shape
-    if not (y >= 0.0 and y <= h - 1.0 and x >= 0.0 and x <= w - 1.0):
-        return cval  # (NaN too)
-    iy = int(np.floor(y))
-    ix = int(np.floor(x))
-    wy0, wy1, wy2, wy3 = _bspline3_weights(y - iy)
-    wx0, wx1, wx2, wx3 = _bspline3_weights(x - ix)
-    if iy >= 1 and iy <= h - 3 and ix >= 1 and ix <= w - 3:
-        # All 16 coefficients inside (the common case): slices, no folding.
-        r0 = coef[iy - 1, ix - 1 : ix + 3]
-        r1 = coef[iy, ix - 1 : ix + 3]
-        r2 = coef[iy + 1, ix - 1 : ix + 3]
-        r3 = coef[iy + 2, ix - 1 : ix + 3]
-        return (
-            wy0 * (wx0 * r0[0] + wx1 * r0[1] + wx2 * r0[2] + wx3 * r0[3])
-            + wy1 * (wx0 * r1[0] + wx1 * r1[1] + wx2 * r1[2] + wx3 * r1[3])
-            + wy2 * (wx0 * r2[0] + wx1 * r2[1] + wx2 * r2[2] + wx3 * r2[3])
-            + wy3 * (wx0 * r3[0] + wx1 * r3[1] + wx2 * r3[2] + wx3 * r3[3])
-        )
-    c0 = _mirror(ix - 1, w)
-    c1 = _mirror(ix, w)
-    c2 = _mirror(ix + 1, w)
-    c3 = _mirror(ix + 2, w)
-    s = 0.0
-    for a in range(4):
-        row = coef[_mirror(iy - 1 + a, h)]
-        wy = wy0 if a == 0 else wy1 if a == 1 else wy2 if a == 2 else wy3
-        s += wy * (wx0 * row[c0] + wx1 * row[c1] + wx2 * row[c2] + wx3 * row[c3])
-    return s
-
-
 @njit(cache=True, nogil=True)
 def _spline_along(coef, px, py, nx, ny, tau, u0, v0):  # pragma: no cover - compiled
     n = px.size
     m = tau.size
+    h, w = coef.shape
+    flat = coef.ravel()
     out = np.empty((n, m))
+    ys = np.empty(m)
+    xs = np.empty(m)
+    wy = np.empty((m, 4))
+    wx = np.empty((m, 4))
     for r in range(n):
+        # A profile's points and their weights first, in loops without a branch (they
+        # vectorise), then its samples. (The points: the same arithmetic as ``p + n * tau``
+        # broadcast in NumPy; the origin's whole pixels taken off after it leave the
+        # spline's fractions as they were.)
         for j in range(m):
-            # (the same arithmetic as ``p + n * tau`` broadcast in NumPy; the origin's whole
-            # pixels taken off after it leave the spline's fractions as they were)
-            y = (py[r] + ny[r] * tau[j]) - v0
-            x = (px[r] + nx[r] * tau[j]) - u0
-            out[r, j] = _spline_point(coef, y, x, 0.0)
+            ys[j] = (py[r] + ny[r] * tau[j]) - v0
+            xs[j] = (px[r] + nx[r] * tau[j]) - u0
+        for j in range(m):
+            wy[j, 0], wy[j, 1], wy[j, 2], wy[j, 3] = _bspline3_weights(ys[j] - np.floor(ys[j]))
+            wx[j, 0], wx[j, 1], wx[j, 2], wx[j, 3] = _bspline3_weights(xs[j] - np.floor(xs[j]))
+        for j in range(m):
+            y = ys[j]
+            x = xs[j]
+            if not (y >= 0.0 and y <= h - 1.0 and x >= 0.0 and x <= w - 1.0):
+                out[r, j] = 0.0  # (NaN too)
+                continue
+            iy = int(np.floor(y))
+            ix = int(np.floor(x))
+            wx0 = wx[j, 0]
+            wx1 = wx[j, 1]
+            wx2 = wx[j, 2]
+            wx3 = wx[j, 3]
+            if iy >= 1 and iy <= h - 3 and ix >= 1 and ix <= w - 3:
+                # All 16 coefficients inside (the common case): no folding.
+                k = (iy - 1) * w + ix - 1
+                s0 = wx0 * flat[k] + wx1 * flat[k + 1] + wx2 * flat[k + 2] + wx3 * flat[k + 3]
+                k += w
+                s1 = wx0 * flat[k] + wx1 * flat[k + 1] + wx2 * flat[k + 2] + wx3 * flat[k + 3]
+                k += w
+                s2 = wx0 * flat[k] + wx1 * flat[k + 1] + wx2 * flat[k + 2] + wx3 * flat[k + 3]
+                k += w
+                s3 = wx0 * flat[k] + wx1 * flat[k + 1] + wx2 * flat[k + 2] + wx3 * flat[k + 3]
+                out[r, j] = wy[j, 0] * s0 + wy[j, 1] * s1 + wy[j, 2] * s2 + wy[j, 3] * s3
+            else:
+                c0 = _mirror(ix - 1, w)
+                c1 = _mirror(ix, w)
+                c2 = _mirror(ix + 1, w)
+                c3 = _mirror(ix + 2, w)
+                s = 0.0
+                for a in range(4):
+                    row = coef[_mirror(iy - 1 + a, h)]
+                    s += wy[j, a] * (wx0 * row[c0] + wx1 * row[c1] + wx2 * row[c2] + wx3 * row[c3])
+                out[r, j] = s
     return out
 
 
