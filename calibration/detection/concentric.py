@@ -74,6 +74,7 @@ from calibration.detection.concentric_fine import (
     measure_and_label,
 )
 from calibration.detection.concentric_rays import (
+    BrightMasks,
     _coarse_darkness,
     _distinct_lines,
     _hough_lines,
@@ -176,6 +177,9 @@ class _ScaleState:
     coarse: dict[int, _CoarseMaps] = field(default_factory=dict)
     """The coarse maps of each scale (closing kernel, px) the first pass made: the later
     passes label other rays on the same maps."""
+    bright: BrightMasks | None = None
+    """The image's bright masks, each made once for every scale and pass (set with the
+    image)."""
 
     def reached(self, stage: int) -> None:
         """Told by the fine stage which of its stages the scale passed."""
@@ -217,7 +221,7 @@ def detect_concentric(
     first = max(9, min(h, w) // 40)
     kernels = sorted({first, max(5, first // 2), max(5, first // 4)}, reverse=True)
     refused, furthest = None, -1
-    state = _ScaleState()
+    state = _ScaleState(bright=BrightMasks(img))
     # On a small, steep target the innermost ring's image can merge with the diameters'
     # crossing at O, and every ray then names ring 1 as ring 0. Rays starting at ring 1 are
     # a second pass only: a ray's three crossings check such a labelling weakly, so a view
@@ -346,7 +350,7 @@ def _coarse_maps(
     """The coarse stage's maps with the closing kernel ``kernel`` px, its darkness and
     background; sets ``state.floor`` where it is ``None`` (the first scale)."""
     h, w = img.shape
-    d, bg, lit, hidden = _coarse_darkness(img, kernel)
+    d, bg, lit, hidden = _coarse_darkness(img, kernel, state.bright(kernel) > 0)
     # Darkness over its local noise threshold (> Z_LINE where a printed line may be).
     thr_map, state.floor = _threshold_map(d, bg, 4 * kernel, hidden, state.floor, lit)
     # Rays stop where the print is hidden (laser stripe, glare): see label_rays.
@@ -458,6 +462,7 @@ def _detect_with_kernel(
         kernel,
         None if d is None or bg is None else (d, bg),
         state.reached,
+        state.bright,
         # A last resort's rings must agree along the rays as right views do (randomised view
         # 2:5, 62 deg steep and faint, gave 0.11 gaps with a point 2.3 px off).
         AGREED_RAY_DEPARTURE if state.relabel else MAX_RAY_DEPARTURE,

@@ -436,7 +436,9 @@ def _line_evidence(
         return 0.0
 
     def along(img: NDArray, p: NDArray) -> NDArray:
-        return ndimage.map_coordinates(img, [p[:, 1], p[:, 0]], order=1)
+        # (a uint8 mask's samples in float64, not rounded to its integers)
+        out = np.float64 if img.dtype == np.uint8 else None
+        return ndimage.map_coordinates(img, [p[:, 1], p[:, 0]], order=1, output=out)
 
     sides = np.stack([along(d, pts + offset_px * n), along(d, pts - offset_px * n)])
     seen = np.ones_like(sides, dtype=bool)

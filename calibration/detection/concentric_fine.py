@@ -36,7 +36,7 @@ from calibration.detection.concentric_labels import (
     label_up_to_symmetry,
 )
 from calibration.detection.concentric_rays import (
-    _bright_mask,
+    BrightMasks,
     _coarse_darkness,
     _darkness,
     _sample,
@@ -292,6 +292,7 @@ def measure_and_label(
     kernel: int,
     coarse_maps: tuple[NDArray, NDArray] | None,
     reached: Callable[[int], None],
+    bright: BrightMasks,
     max_departure: float = MAX_RAY_DEPARTURE,
 ) -> TargetObservation:
     """The target measured to sub-pixel, checked and labelled, from the coarse stage's pencil.
@@ -319,6 +320,8 @@ def measure_and_label(
     reached : callable
         Told each stage passed (4: rings and diameters measured, 5: tilt, 6: diameters'
         crossing and print), so the caller can show the most telling of several refusals.
+    bright : BrightMasks
+        The image's bright masks (laser stripe, glare), made once for every pass.
     max_departure : float
         How far the rings may depart from the radii along the rays from O, in ring gaps
         (:func:`ray_departure`): a last pass asks for :data:`AGREED_RAY_DEPARTURE`, as
@@ -331,7 +334,7 @@ def measure_and_label(
         reason.
     """
     args = (img, target, s)
-    later = (hough_pair, z_rays, kernel, coarse_maps, reached, max_departure)
+    later = (hough_pair, z_rays, kernel, coarse_maps, reached, bright, max_departure)
     wider = _WiderSpacing()
     first = _measure(*args, conics, c, *later, wider)
     if wider.conics is None:
@@ -391,6 +394,7 @@ def _measure(
     kernel: int,
     coarse_maps: tuple[NDArray, NDArray] | None,
     reached: Callable[[int], None],
+    bright_masks: BrightMasks,
     max_departure: float,
     wider: _WiderSpacing | None,
 ) -> TargetObservation:
@@ -408,7 +412,7 @@ def _measure(
     line_px, half_window = _line_and_window_px(line_frac, spacing_px)
     # Finer darkness map now that the scale is known (kernel several line widths, < spacing).
     kernel2 = int(np.clip(4 * half_window + 3, 9, max(9, 0.8 * spacing_px)))
-    bright = _bright_mask(img, kernel2)
+    bright = bright_masks(kernel2)
     if kernel2 != kernel:
         d, bg, _ = _darkness(img, kernel2, bright > 0)
     elif d is None or bg is None:  # a later pass: the coarse maps again (not kept)

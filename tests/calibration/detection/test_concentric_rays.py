@@ -7,6 +7,8 @@ import numpy as np
 import pytest
 
 from calibration.detection.concentric_rays import (
+    BrightMasks,
+    _bright_mask,
     _darkness,
     _grey_morphology,
     _lit_level,
@@ -141,3 +143,22 @@ def test_grey_morphology_of_a_range_without_levels_is_opencvs_in_float(span) -> 
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
     want = cv2.morphologyEx(img, cv2.MORPH_CLOSE, disc)
     np.testing.assert_array_equal(_grey_morphology(img, (cv2.MORPH_CLOSE, disc)), want)
+
+
+def test_bright_masks_find_a_stripe_and_are_made_once_per_element_size() -> None:
+    # Paper with grain and printed rings' stand-ins (dark lines), a laser stripe 1.6 times as
+    # bright across it.
+    rng = np.random.default_rng(41)
+    img = np.full((240, 320), 0.55) + rng.normal(0, 0.01, (240, 320))
+    img[::17, :] *= 0.5
+    img[:, 150:156] = 0.9
+    masks = BrightMasks(img)
+    got = masks(12)
+    assert got.dtype == np.uint8 and set(np.unique(got)) == {0, 1}
+    assert got[:, 150:156].all()  # the stripe
+    assert not got[:, :140].any() and not got[:, 166:].any()  # neither grain nor lines
+    np.testing.assert_array_equal(got, _bright_mask(img, 12))
+    # kernels up to 7 px share the 15 px element: one mask; another size is made anew
+    assert masks(5) is masks(7)
+    assert masks(12) is got and masks(9) is not got
+    np.testing.assert_array_equal(masks(9), _bright_mask(img, 9))
