@@ -15,9 +15,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import ndimage
 from scipy.optimize import least_squares
 
+from calibration.detection.bspline import spline_filter
 from calibration.detection.conics import (
     fit_conic,
     pencil_center,
@@ -108,7 +108,7 @@ class SplineWindow:
         if inside:
             return self.coef, self.origin_px
         if self.whole is None:
-            self.whole = ndimage.spline_filter(self.darkness, order=3)
+            self.whole = spline_filter(self.darkness)
         return self.whole, (0, 0)
 
 
@@ -150,7 +150,7 @@ def spline_window(
         u1, v1 = min(int(hi[0]), w), min(int(hi[1]), h)
         if u1 - u0 < 8 or v1 - v0 < 8:
             u0, v0, u1, v1 = 0, 0, w, h
-    coef = ndimage.spline_filter(darkness[v0:v1, u0:u1], order=3)
+    coef = spline_filter(darkness[v0:v1, u0:u1])
     return SplineWindow(darkness, coef, (u0, v0))
 
 
