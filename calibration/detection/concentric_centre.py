@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from calibration.detection.concentric_rays import _label_rays, _line_from_hough
+from calibration.detection.concentric_rays import _line_from_hough, _ray_support
 from calibration.detection.conics import intersect_lines
 
 #: The coarse stage's maps hold the darkness over its local noise threshold: a printed line
@@ -86,12 +86,12 @@ def _best_centre(
                 continue
             axis_angles = [t1 + np.pi / 2, t1 - np.pi / 2, t2 + np.pi / 2, t2 - np.pi / 2]
             # a quarter of the rays first: most crossings of clutter lines stop here
-            _, quick = _label_rays(
+            quick = _ray_support(
                 z_rays, c, radii, z_line, axis_angles, 24, ring0_hidden, bundle_step_px
             )
             if quick < 2 or (best is not None and 4 * quick < 0.5 * best[0]):
                 continue
-            _, good = _label_rays(
+            good = _ray_support(
                 z_rays,
                 c,
                 radii,
@@ -112,7 +112,7 @@ def _climbed_centre(
 ) -> _Centre:
     """A candidate centre moved to where its rays find the most ring crossings in order.
 
-    A pattern search on :func:`_label_rays`'s support: the eight neighbours ``step_px`` away
+    A pattern search on the rays' support (:func:`_ray_support`): the eight neighbours ``step_px`` away
     are tried, the best one taken while it beats the centre, the step halved when none does,
     while the step is at least 1 px. The lines and the diameters' directions stay the Hough
     lines'. Along a diameter a shift is nearly a projectivity of the radii, so the centre
@@ -140,7 +140,7 @@ def _climbed_centre(
     def support(p: NDArray) -> int:
         if not (0 <= p[0] < w and 0 <= p[1] < h):
             return -1
-        return _label_rays(z_rays, p, radii, Z_LINE, axis_angles, ring0_hidden=ring0_hidden)[1]
+        return _ray_support(z_rays, p, radii, Z_LINE, axis_angles, ring0_hidden=ring0_hidden)
 
     best = support(c)
     moves = [np.array([dx, dy], float) for dx in (-1, 0, 1) for dy in (-1, 0, 1) if dx or dy]

@@ -391,6 +391,47 @@ def _sample(img: NDArray, u: NDArray, v: NDArray) -> NDArray:
     return np.where(inside, values, 0.0)
 
 
+def _fitted_rays(
+    d: NDArray,
+    c: NDArray,
+    radii: NDArray,
+    thr: float,
+    axis_angles: list[float],
+    n_rays: int,
+    ring0_hidden: bool,
+    bundle_step_px: float,
+) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+    """The rays of :func:`_label_rays`: their angles, crossings labelled (count, distances
+    ``(R, K)``) and whether they fit the projectivity."""
+    angles = np.linspace(0, 2 * np.pi, n_rays, endpoint=False) + 0.013
+    # (not within 6 deg of a diameter)
+    off_axes = (angles[:, None] - np.asarray(axis_angles)[None, :] + np.pi) % (2 * np.pi) - np.pi
+    angles = angles[np.all(np.abs(off_axes) > np.radians(6), axis=1)]
+    count, peaks, err = label_rays(
+        d, c, angles, radii, thr, FIT_TOL_PX, FIT_TOL_FRACTION, ring0_hidden, bundle_step_px
+    )
+    last = np.max(np.nan_to_num(peaks, nan=0.0), axis=1)  # the farthest labelled crossing
+    ok = (count >= 3) & (err <= FIT_TOL_PX + FIT_TOL_FRACTION * last)
+    return angles, count, peaks, ok
+
+
+def _ray_support(
+    d: NDArray,
+    c: NDArray,
+    radii: NDArray,
+    thr: float,
+    axis_angles: list[float],
+    n_rays: int = 96,
+    ring0_hidden: bool = False,
+    bundle_step_px: float = 0.0,
+) -> int:
+    """The support of ``c``: :func:`_label_rays`'s second result, without its rings."""
+    _, count, _, ok = _fitted_rays(
+        d, c, radii, thr, axis_angles, n_rays, ring0_hidden, bundle_step_px
+    )
+    return int(np.sum(count[ok] - 2))
+
+
 def _label_rays(
     d: NDArray,
     c: NDArray,
@@ -406,18 +447,13 @@ def _label_rays(
     Returns per ring a list of (angle, point px) and the support of ``c``: over the rays
     whose crossings fit the projectivity, the crossings beyond the two that any fit of its
     two parameters takes (three crossings fit nearly any point near a target; a centre whose
-    rays cross every ring in order is the target's). ``ring0_hidden``, ``bundle_step_px``: see
+    rays cross every ring in order is the target's; :func:`_ray_support` gives it alone).
+    ``ring0_hidden``, ``bundle_step_px``: see
     :func:`~calibration.detection.ray_kernels.label_rays`.
     """
-    angles = np.linspace(0, 2 * np.pi, n_rays, endpoint=False) + 0.013
-    # (not within 6 deg of a diameter)
-    off_axes = (angles[:, None] - np.asarray(axis_angles)[None, :] + np.pi) % (2 * np.pi) - np.pi
-    angles = angles[np.all(np.abs(off_axes) > np.radians(6), axis=1)]
-    count, peaks, err = label_rays(
-        d, c, angles, radii, thr, FIT_TOL_PX, FIT_TOL_FRACTION, ring0_hidden, bundle_step_px
+    angles, count, peaks, ok = _fitted_rays(
+        d, c, radii, thr, axis_angles, n_rays, ring0_hidden, bundle_step_px
     )
-    last = np.max(np.nan_to_num(peaks, nan=0.0), axis=1)  # the farthest labelled crossing
-    ok = (count >= 3) & (err <= FIT_TOL_PX + FIT_TOL_FRACTION * last)
     fitted, fitted_angles = peaks[ok], angles[ok]
     dirs = np.column_stack([np.cos(fitted_angles), np.sin(fitted_angles)])
     per_ring: list[list[tuple[float, NDArray]]] = []

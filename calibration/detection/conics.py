@@ -117,8 +117,18 @@ def fit_line(points_px: ArrayLike) -> NDArray:
 
 
 def intersect_lines(l1: ArrayLike, l2: ArrayLike) -> NDArray:
-    """Homogeneous intersection ``(3,)`` of two lines."""
-    return np.cross(np.asarray(l1, float), np.asarray(l2, float))
+    """Homogeneous intersection ``(3,)`` of two lines ``(3,)``: ``np.cross(l1, l2)``.
+
+    (Written out: the detector asks for thousands per image, and ``np.cross`` takes about
+    60 us for two 3-vectors; the same products and differences, so the same bits.)
+    """
+    a = np.asarray(l1, float)
+    b = np.asarray(l2, float)
+    if a.shape != (3,) or b.shape != (3,):
+        return np.cross(a, b)
+    a0, a1, a2 = a.tolist()
+    b0, b1, b2 = b.tolist()
+    return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
 
 
 def line_conic_intersections(line: ArrayLike, conic: NDArray) -> NDArray:

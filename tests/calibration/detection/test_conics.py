@@ -7,6 +7,7 @@ from calibration.detection.conics import (
     fit_conic,
     fit_line,
     harmonic_conjugate,
+    intersect_lines,
     line_conic_intersections,
     pencil_center,
     pencil_member,
@@ -150,3 +151,19 @@ def test_line_conic_intersections_and_line_fit():
     want = np.array([img((50.0, 0.0)), img((-50.0, 0.0))])
     d = np.linalg.norm(got[:, None] - want[None], axis=2).min(axis=1)
     assert np.all(d < 1e-6)
+
+
+def test_intersect_lines_is_numpys_cross_to_the_bit():
+    rng = np.random.default_rng(20261202)
+    for _ in range(500):
+        a, b = rng.normal(size=(2, 3)) * rng.choice([1e-6, 1.0, 1e6], (2, 3))
+        got = intersect_lines(a, b)
+        np.testing.assert_array_equal(got, np.cross(a, b))
+        assert got.shape == (3,) and got.dtype == np.float64
+    # the homogeneous crossing of two image lines, and stacked lines as np.cross takes them
+    x = intersect_lines([1.0, 0.0, -3.0], [0.0, 1.0, -5.0])
+    np.testing.assert_allclose(x[:2] / x[2], [3.0, 5.0])
+    stacked = rng.normal(size=(4, 3))
+    np.testing.assert_array_equal(
+        intersect_lines(stacked, stacked[::-1]), np.cross(stacked, stacked[::-1])
+    )
