@@ -107,6 +107,11 @@ def _label(
         n = 0
         first = 0
         was_inside = False
+        # The runs over ``thr`` so far, as the crossings below count them (0: in the run
+        # touching the start, 1: between runs, 2: in a run): the ray stops one sample after
+        # its K-th, since no crossing beyond is labelled.
+        phase = 0
+        runs = 0
         for s in range(n_samples - 1):
             t = 1.0 + s
             u = cx + t * cos_a[i]
@@ -164,6 +169,15 @@ def _label(
                     n = s + 1
                     break
             n = s + 1
+            if row[s] > thr:
+                phase = 2 if phase else 0
+            elif phase == 2:
+                phase = 1
+                runs += 1
+                if runs == k_max:
+                    break
+            else:
+                phase = 1
         j = first
         while j < n and row[j] > thr:  # the run touching the start
             j += 1
