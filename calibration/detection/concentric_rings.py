@@ -19,6 +19,7 @@ from scipy.optimize import least_squares
 
 from calibration.detection.bspline import spline_filter
 from calibration.detection.conics import (
+    conic_ray_distances,
     fit_conic,
     pencil_center,
     pencil_member,
@@ -182,22 +183,9 @@ def _locate_centres(
 
 
 def _conic_point_on_ray(conic: NDArray, c: NDArray, dirs: NDArray) -> NDArray:
-    """Positive t where ``c + t dir`` meets the conic, per direction (NaN if none)."""
-    p0 = np.array([c[0], c[1], 1.0])
-    cp = conic @ p0
-    dx, dy = dirs[:, 0], dirs[:, 1]
-    # (dir, 0)^T C (dir, 0), 2 (dir, 0)^T C p0 and p0^T C p0 of the quadratic in t
-    a = conic[0, 0] * dx * dx + (conic[0, 1] + conic[1, 0]) * dx * dy + conic[1, 1] * dy * dy
-    b = 2.0 * (dx * cp[0] + dy * cp[1])
-    cc = float(p0 @ cp)
-    disc = b * b - 4 * a * cc
-    with np.errstate(invalid="ignore", divide="ignore"):
-        sq = np.sqrt(disc)
-        t1 = (-b + sq) / (2 * a)
-        t2 = (-b - sq) / (2 * a)
-    t = np.where(t1 > 0, t1, t2)
-    t = np.where((disc >= 0) & (t > 0), t, np.nan)
-    return t
+    """Positive t where ``c + t dir`` meets the conic, per direction (NaN if none):
+    :func:`~calibration.detection.conics.conic_ray_distances`."""
+    return conic_ray_distances(conic, c, dirs)
 
 
 def _conic_normals(conic: NDArray, pts: NDArray) -> NDArray:

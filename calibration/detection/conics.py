@@ -14,9 +14,11 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares
 
 from scanner.core.conventions import check_points
+from scanner.core.jit import njit
 
 __all__ = [
     "conic_from_coefficients",
+    "conic_ray_distances",
     "fit_conic",
     "fit_line",
     "harmonic_conjugate",
@@ -226,3 +228,60 @@ def harmonic_conjugate(a: ArrayLike, b: ArrayLike, o: ArrayLike) -> NDArray:
     num = tb * (to - ta) + ta * (to - tb)
     den = 2 * to - ta - tb
     return np.array([den * a[0] + num * d[0], den * a[1] + num * d[1], den])
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _ray_roots(c00, c01_c10, c11, cp0, cp1, cc, dx, dy):  # pragma: no cover - compiled
+    out = np.empty(dx.size)
+    for k in range(dx.size):
+        # the quadratic in t, term by term as NumPy's array expressions take them
+        a = c00 * dx[k] * dx[k] + c01_c10 * dx[k] * dy[k] + c11 * dy[k] * dy[k]
+        b = 2.0 * (dx[k] * cp0 + dy[k] * cp1)
+        disc = b * b - 4 * a * cc
+        sq = np.sqrt(disc)
+        t1 = (-b + sq) / (2 * a)
+        t2 = (-b - sq) / (2 * a)
+        t = t1 if t1 > 0 else t2
+        out[k] = t if disc >= 0 and t > 0 else np.nan
+    return out
+
+
+def conic_ray_distances(conic: NDArray, c: ArrayLike, dirs: NDArray) -> NDArray:
+    """Where the rays ``c + t dir`` meet a conic: the positive ``t`` per direction.
+
+    The larger root where it is positive, else the smaller one; NaN where neither is
+    positive or the ray misses the conic. (The quadratic's terms per direction are compiled:
+    the detector asks for thousands of these per image, each a dozen array operations on a
+    few directions in NumPy; the same arithmetic, so the same bits.)
+
+    Parameters
+    ----------
+    conic : ndarray, shape (3, 3)
+    c : array_like, shape (2,)
+        The rays' origin, px.
+    dirs : ndarray, shape (N, 2)
+        Their directions (unit or not: ``t`` is in their lengths).
+
+    Returns
+    -------
+    ndarray, shape (N,)
+    """
+    conic = np.asarray(conic, dtype=np.float64)
+    p0 = np.array([c[0], c[1], 1.0], dtype=np.float64)
+    cp = conic @ p0
+    cc = float(p0 @ cp)
+    d = np.asarray(dirs, dtype=np.float64)
+    if conic.shape != (3, 3) or d.ndim != 2 or d.shape[1] != 2:
+        raise ValueError(
+            f"conic, dirs: expected shapes (3, 3) and (N, 2), got {conic.shape}, {d.shape}"
+        )
+    return _ray_roots(
+        float(conic[0, 0]),
+        float(conic[0, 1] + conic[1, 0]),
+        float(conic[1, 1]),
+        float(cp[0]),
+        float(cp[1]),
+        cc,
+        np.ascontiguousarray(d[:, 0]),
+        np.ascontiguousarray(d[:, 1]),
+    )

@@ -4,6 +4,7 @@ from scipy.optimize import least_squares
 
 from calibration.detection.conics import (
     conic_from_coefficients,
+    conic_ray_distances,
     fit_conic,
     fit_line,
     harmonic_conjugate,
@@ -167,3 +168,38 @@ def test_intersect_lines_is_numpys_cross_to_the_bit():
     np.testing.assert_array_equal(
         intersect_lines(stacked, stacked[::-1]), np.cross(stacked, stacked[::-1])
     )
+
+
+def _ray_distances_reference(conic, c, dirs):
+    """The positive root per direction, in NumPy's array expressions."""
+    p0 = np.array([c[0], c[1], 1.0])
+    cp = conic @ p0
+    dx, dy = dirs[:, 0], dirs[:, 1]
+    a = conic[0, 0] * dx * dx + (conic[0, 1] + conic[1, 0]) * dx * dy + conic[1, 1] * dy * dy
+    b = 2.0 * (dx * cp[0] + dy * cp[1])
+    disc = b * b - 4 * a * float(p0 @ cp)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sq = np.sqrt(disc)
+        t1, t2 = (-b + sq) / (2 * a), (-b - sq) / (2 * a)
+    t = np.where(t1 > 0, t1, t2)
+    return np.where((disc >= 0) & (t > 0), t, np.nan)
+
+
+def test_conic_ray_distances_meet_the_conic_and_are_numpys_to_the_bit():
+    rng = np.random.default_rng(20261203)
+    angles = np.linspace(0, 2 * np.pi, 37)
+    dirs = np.column_stack([np.cos(angles), np.sin(angles)])
+    # an ellipse around the origin: every ray from inside meets it once, at its radius
+    t = conic_ray_distances(np.diag([1 / 9.0, 1 / 4.0, -1.0]), [0.0, 0.0], dirs)
+    np.testing.assert_allclose(t, 1 / np.sqrt(np.cos(angles) ** 2 / 9 + np.sin(angles) ** 2 / 4))
+    # from outside a circle: the rays away from it miss (NaN), those towards it meet it
+    t = conic_ray_distances(np.diag([1.0, 1.0, -1.0]), [3.0, 0.0], dirs)
+    assert np.isnan(t[np.cos(angles) > 0]).all() and np.isfinite(t[np.cos(angles) < -0.99]).all()
+    for _ in range(300):
+        m = rng.normal(size=(3, 3))
+        conic = m + m.T
+        c = rng.normal(size=2) * 5
+        d = rng.normal(size=(int(rng.integers(1, 40)), 2))
+        d[rng.random(len(d)) < 0.1] = 0.0  # (a zero direction: 0 / 0)
+        got = conic_ray_distances(conic, c, d)
+        np.testing.assert_array_equal(got, _ray_distances_reference(conic, c, d))
