@@ -123,6 +123,8 @@ def spline_filter(image: NDArray) -> NDArray:
     if not HAVE_NUMBA:  # pragma: no cover - numba is a dependency
         return ndimage.spline_filter(img, order=3)
     c = np.array(img, dtype=np.float64, order="C")
+    if c.size == 0:
+        return c
     z = POLE
     gain = (1.0 - z) * (1.0 - 1.0 / z)
     h, w = c.shape

@@ -112,8 +112,9 @@ def _climbed_centre(
 ) -> _Centre:
     """A candidate centre moved to where its rays find the most ring crossings in order.
 
-    A pattern search on the rays' support (:func:`_ray_support`): the eight neighbours ``step_px`` away
-    are tried, the best one taken while it beats the centre, the step halved when none does,
+    A pattern search on the rays' support (:func:`_ray_support`): the eight neighbours
+    ``step_px`` away are tried, the best one taken while it beats the centre, the step halved
+    when none does,
     while the step is at least 1 px. The lines and the diameters' directions stay the Hough
     lines'. Along a diameter a shift is nearly a projectivity of the radii, so the centre
     lands on the diameter within a ring or so of O (the ring conics' pencil pins O after).

@@ -216,20 +216,20 @@ class BrightMasks:
         if k not in self._masks:
             if self._smooth is None:
                 self._smooth = _smoothed(self.img)
-            self._masks[k] = _bright_mask(self.img, kernel_px, self._smooth)
+            mask = _bright_mask(self.img, kernel_px, self._smooth)
+            mask.flags.writeable = False  # (shared by every pass that asks)
+            self._masks[k] = mask
         return self._masks[k]
 
 
 def _coarse_darkness(
-    img: NDArray, kernel: int, hidden: NDArray | None = None
+    img: NDArray, kernel: int, hidden: NDArray
 ) -> tuple[NDArray, NDArray, float, NDArray]:
     """The coarse stage's darkness, background, lit paper level and hidden (bright) pixels
-    with the closing kernel ``kernel`` px; ``hidden``: the bright pixels where already known
+    with the closing kernel ``kernel`` px; ``hidden``: the bright pixels
     (``_bright_mask(img, kernel) > 0``, :class:`BrightMasks`)."""
     # Coarse stage on a lightly smoothed image: noise and grain drop about threefold, a
     # printed line keeps most of its darkness.
-    if hidden is None:
-        hidden = _bright_mask(img, kernel) > 0
     d, bg, lit = _darkness(cv2.GaussianBlur(img, (0, 0), 1.0), kernel, hidden)
     return d, bg, lit, hidden
 

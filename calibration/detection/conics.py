@@ -249,8 +249,11 @@ def _ray_roots(c00, c01_c10, c11, cp0, cp1, cc, dx, dy):  # pragma: no cover - c
 def conic_ray_distances(conic: NDArray, c: ArrayLike, dirs: NDArray) -> NDArray:
     """Where the rays ``c + t dir`` meet a conic: the positive ``t`` per direction.
 
-    The larger root where it is positive, else the smaller one; NaN where neither is
-    positive or the ray misses the conic. (The quadratic's terms per direction are compiled:
+    Of the quadratic ``a t^2 + b t + c = 0``'s roots, ``(-b + sqrt(b^2 - 4ac)) / 2a`` where
+    it is positive (the larger root for ``a > 0``, a conic and its negative giving the
+    other), else ``(-b - sqrt(b^2 - 4ac)) / 2a``; NaN where that is not positive or the ray
+    misses the conic. The conic is taken in float64. (The quadratic's terms per direction are
+    compiled:
     the detector asks for thousands of these per image, each a dozen array operations on a
     few directions in NumPy; the same arithmetic, so the same bits.)
 

@@ -10,8 +10,9 @@ levels for float32, four for float64, each after the first over the few values l
 
 The result is ``np.median``'s to the bit: the middle value, or for an even count the mean of
 the two middle values in the sample's own precision (``(a + b) / 2`` in float32 for a
-float32 sample, as ``np.mean`` gives it). ``-0.0`` and ``0.0`` are told apart by their bits
-and by nothing else (NumPy returns either); a sample holding NaN gives NaN, as in NumPy.
+float32 sample, as ``np.mean`` gives it); a zero median is ``+0.0``, as NumPy's mean makes
+it (its sums start from ``+0.0``), though the keys sort ``-0.0`` below ``0.0``; a sample
+holding NaN gives NaN, as in NumPy.
 """
 
 from __future__ import annotations
@@ -142,6 +143,8 @@ def median(x: NDArray) -> float:
     lo_key, equal_above = _select(keys, (n - 1) // 2, top)
     lo = _value(lo_key, x.dtype)
     if n % 2:
-        return float(lo)
-    hi = lo if equal_above > 0 else _value(_above(keys, np.uint64(lo_key)), x.dtype)
-    return float((lo + hi) / x.dtype.type(2))
+        mid = float(lo)
+    else:
+        hi = lo if equal_above > 0 else _value(_above(keys, np.uint64(lo_key)), x.dtype)
+        mid = float((lo + hi) / x.dtype.type(2))
+    return 0.0 if mid == 0.0 else mid  # (+0.0 for -0.0, as NumPy's)

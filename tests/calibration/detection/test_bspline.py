@@ -48,6 +48,12 @@ def test_values_that_are_not_finite_or_overflow_are_scipys() -> None:
             np.testing.assert_array_equal(spline_filter(big), ndimage.spline_filter(big, order=3))
 
 
+@pytest.mark.parametrize("shape", [(0, 40), (40, 0), (0, 0), (0, 1), (1, 0)])
+def test_an_empty_image_gives_empty_coefficients(shape: tuple[int, int]) -> None:
+    got = spline_filter(np.zeros(shape))
+    assert got.shape == shape and got.dtype == np.float64
+
+
 def test_the_input_is_left_as_it_was() -> None:
     img = np.random.default_rng(8).random((20, 30))
     before = img.copy()

@@ -30,7 +30,8 @@ def test_median_is_numpys_to_the_bit(dtype: type) -> None:
         with np.errstate(over="ignore"):
             x = _samples(rng, n, t % 6).astype(dtype)
         got, want = median(x), float(np.median(x))
-        assert got == want, (t, n, got, want)
+        # (compared by bits: -0.0 == 0.0 would pass)
+        assert np.float64(got).tobytes() == np.float64(want).tobytes(), (t, n, got, want)
 
 
 def test_median_of_a_sample_whose_middle_pair_straddles_a_gap() -> None:
@@ -42,6 +43,15 @@ def test_median_of_a_sample_whose_middle_pair_straddles_a_gap() -> None:
     assert median(x) == 0.0
     x = np.concatenate([np.zeros(5000), np.full(5000, 3.0)])
     assert median(x) == 1.5
+
+
+@pytest.mark.parametrize("n", [SMALL_SAMPLE, SMALL_SAMPLE + 1])
+def test_a_zero_median_is_positive_zero_as_numpys(n: int) -> None:
+    for dtype in (np.float32, np.float64):
+        x = np.full(n, -0.0, dtype=dtype)
+        assert not np.signbit(median(x)) and not np.signbit(np.median(x))
+        x[: n // 2] = 0.0  # both zeros in the middle pair
+        assert not np.signbit(median(x))
 
 
 def test_median_gives_nan_where_the_sample_holds_nan() -> None:
