@@ -2,7 +2,7 @@
 coefficients to the bit, in about 40 % of its time.
 
 The ring detector's fine stage samples its darkness map on a cubic spline
-(:func:`calibration.detection.ray_kernels.spline_along`) whose coefficients come from the
+(:func:`calibration.detection.profile_kernels.spline_along`) whose coefficients come from the
 recursive filter of Unser, Aldroubi and Eden (1991): along each axis in turn, the gain, a
 causal pass started from the mirrored line's sum, an anticausal pass. SciPy filters one line
 at a time through a buffer; :func:`spline_filter` runs the same arithmetic, in the same

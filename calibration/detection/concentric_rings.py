@@ -25,7 +25,7 @@ from calibration.detection.conics import (
     pencil_member,
     sampson_distances,
 )
-from calibration.detection.ray_kernels import line_centres, spline_along, window_touches
+from calibration.detection.profile_kernels import profile_line_centres, window_touches
 
 __all__ = [
     "MIN_CONIC_POINTS",
@@ -172,8 +172,7 @@ def _locate_centres(
     span = search + half_window + 1.0
     tau = np.arange(-span, span + step / 2, step)
     coef, origin = spline.covering(points, normals, span)
-    prof = spline_along(coef, points, normals, tau, origin)
-    c, contrast = line_centres(prof, tau, half_window, search)
+    c, contrast = profile_line_centres(coef, points, normals, tau, half_window, search, origin)
     ok = np.isfinite(c) & (np.abs(c) < search) & (contrast > 0)
     if bright is not None:
         # A line whose window touches something brighter than the paper (laser stripe,

@@ -15,7 +15,7 @@ from calibration.detection.concentric_rings import (
     spline_window,
 )
 from calibration.detection.conics import fit_conic, pencil_center, sampson_distances
-from calibration.detection.ray_kernels import spline_along
+from calibration.detection.profile_kernels import spline_along
 
 
 def _circle(radius_px: float, centre=(320.0, 240.0)) -> np.ndarray:
