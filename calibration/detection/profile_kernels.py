@@ -136,6 +136,32 @@ def _spline_along(coef, px, py, nx, ny, tau, u0, v0):  # pragma: no cover - comp
     return out
 
 
+def _profile_arguments(
+    coef: NDArray, points: NDArray, normals: NDArray, tau: NDArray, origin_px: tuple[int, int]
+) -> tuple[NDArray, NDArray, NDArray, NDArray, NDArray, NDArray, float, float]:
+    """The profile kernels' arguments, checked: the coefficients, the points' and normals'
+    ``u`` and ``v`` apart, the positions (contiguous float64), the origin's whole pixels."""
+    c = np.ascontiguousarray(coef, dtype=np.float64)
+    p = np.asarray(points, dtype=np.float64)
+    n = np.asarray(normals, dtype=np.float64)
+    t = np.ascontiguousarray(tau, dtype=np.float64)
+    if c.ndim != 2 or p.ndim != 2 or p.shape[1:] != (2,) or n.shape != p.shape or t.ndim != 1:
+        raise ValueError(
+            "coef, points, normals, tau: expected shapes (H, W), (N, 2), (N, 2), (M,), got "
+            f"{c.shape}, {p.shape}, {n.shape}, {t.shape}"
+        )
+    return (
+        c,
+        np.ascontiguousarray(p[:, 0]),
+        np.ascontiguousarray(p[:, 1]),
+        np.ascontiguousarray(n[:, 0]),
+        np.ascontiguousarray(n[:, 1]),
+        t,
+        float(int(origin_px[0])),
+        float(int(origin_px[1])),
+    )
+
+
 def spline_along(
     coef: NDArray,
     points: NDArray,
@@ -165,25 +191,7 @@ def spline_along(
     -------
     ndarray, shape (N, M), float64
     """
-    c = np.ascontiguousarray(coef, dtype=np.float64)
-    p = np.asarray(points, dtype=np.float64)
-    n = np.asarray(normals, dtype=np.float64)
-    t = np.ascontiguousarray(tau, dtype=np.float64)
-    if c.ndim != 2 or p.ndim != 2 or p.shape[1:] != (2,) or n.shape != p.shape or t.ndim != 1:
-        raise ValueError(
-            "coef, points, normals, tau: expected shapes (H, W), (N, 2), (N, 2), (M,), got "
-            f"{c.shape}, {p.shape}, {n.shape}, {t.shape}"
-        )
-    return _spline_along(
-        c,
-        np.ascontiguousarray(p[:, 0]),
-        np.ascontiguousarray(p[:, 1]),
-        np.ascontiguousarray(n[:, 0]),
-        np.ascontiguousarray(n[:, 1]),
-        t,
-        float(int(origin_px[0])),
-        float(int(origin_px[1])),
-    )
+    return _spline_along(*_profile_arguments(coef, points, normals, tau, origin_px))
 
 
 @njit(cache=True, nogil=True)
@@ -318,7 +326,7 @@ def _profile_centres(
     xs = np.empty(m)
     wy = np.empty((m, 4))
     wx = np.empty((m, 4))
-    prof = np.empty((1, m))
+    prof = np.empty((1, m))  # (one row, so that _at reads it as _centres does)
     val = prof[0]
     tau0 = tau[0]
     step = tau[1] - tau[0]
@@ -408,29 +416,10 @@ def profile_line_centres(
     contrast : ndarray, shape (N,)
         The profile at the centre above the mean at ``centre -+ half_window``.
     """
-    c = np.ascontiguousarray(coef, dtype=np.float64)
-    p = np.asarray(points, dtype=np.float64)
-    n = np.asarray(normals, dtype=np.float64)
-    t = np.ascontiguousarray(tau, dtype=np.float64)
-    if c.ndim != 2 or p.ndim != 2 or p.shape[1:] != (2,) or n.shape != p.shape or t.ndim != 1:
-        raise ValueError(
-            "coef, points, normals, tau: expected shapes (H, W), (N, 2), (N, 2), (M,), got "
-            f"{c.shape}, {p.shape}, {n.shape}, {t.shape}"
-        )
-    if len(t) < 2:
-        raise ValueError(f"tau: expected at least 2 positions, got {len(t)}")
-    return _profile_centres(
-        c,
-        np.ascontiguousarray(p[:, 0]),
-        np.ascontiguousarray(p[:, 1]),
-        np.ascontiguousarray(n[:, 0]),
-        np.ascontiguousarray(n[:, 1]),
-        t,
-        float(int(origin_px[0])),
-        float(int(origin_px[1])),
-        float(half_window),
-        float(search),
-    )
+    args = _profile_arguments(coef, points, normals, tau, origin_px)
+    if len(args[5]) < 2:
+        raise ValueError(f"tau: expected at least 2 positions, got {len(args[5])}")
+    return _profile_centres(*args, float(half_window), float(search))
 
 
 @njit(cache=True, nogil=True)
