@@ -1,7 +1,7 @@
 """Compiled kernels of the ring detector's fine stage: profiles across the printed lines.
 
-The fine stage measures each ring along short profiles normal to it, sampled
-every 0.125 px on the cubic spline of the darkness map.
+The fine stage measures each ring along short profiles normal to it, sampled every 0.125 px
+on the cubic spline of the darkness map.
 
 :func:`spline_along` samples a cubic-spline coefficient image along lines, as
 :func:`scipy.ndimage.map_coordinates` does (``order=3, prefilter=False``, ``mode="constant"``)
@@ -10,9 +10,11 @@ to rounding, without building the samples' points.
 :func:`line_centres` finds the centre of the dark line in each of those profiles: the
 centroid, over a window about it, of the darkness above the window ends' mean, iterated.
 
-:func:`profile_line_centres` gives what ``line_centres(spline_along(...))`` gives, to the
-bit, sampling only what the centres read: the samples within the search (for the starting
-maximum) and those the centroid windows reach. The profiles span a search and a window on
+:func:`spline_along` and :func:`line_centres` are the plain definitions (every sample of
+every profile); the detector calls :func:`profile_line_centres`, which gives what
+``line_centres(spline_along(...))`` gives, to the bit, sampling only what the centres
+read: the samples within the search (for the starting maximum) and those the centroid
+windows reach. The profiles span a search and a window on
 each side, and the window about a centre found near 0 stays within the search, so about
 half of the samples are never read (on the modern cell's views 53 % are not). That takes
 the profiles' share of a detection from about 88 to 76 ms per view on the forty-second
