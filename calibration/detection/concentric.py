@@ -37,7 +37,9 @@ crossings of the Hough lines, the crossings of weaker Hough lines, and last the 
 crossings named again by one homography of the whole target, where rays named whole sectors
 a ring or two off) are later passes over the closing scales, run only where the first
 refused the view, so that a view the first pass measures is never exposed to their weaker
-checks.
+checks. A last sweep, where every pass refused the view, measures the rings that two
+measured ones predict (:mod:`calibration.detection.concentric_missing`) and judges the
+candidate centres by bundles of rays; it accepts a view only with its orientation marker.
 
 Steps 1-3 are in :mod:`calibration.detection.concentric_rays` (the candidate centres in
 :mod:`calibration.detection.concentric_centre`), 4-5 in
@@ -73,6 +75,7 @@ from calibration.detection.concentric_fine import (
     MAX_RAY_DEPARTURE,
     measure_and_label,
 )
+from calibration.detection.concentric_missing import RingRecovery
 from calibration.detection.concentric_rays import (
     BrightMasks,
     _coarse_darkness,
@@ -137,16 +140,12 @@ class _CoarseMaps:
     pays it)."""
 
 
-@dataclass
-class _ScaleState:
-    """What one closing scale of :func:`detect_concentric` tells the next, and each pass over
-    the scales the later ones."""
+@dataclass(frozen=True)
+class _Pass:
+    """How one pass of :func:`detect_concentric` over the closing scales finds the target; each
+    pass runs only where every earlier one refused the view, so that a view an earlier pass
+    measures is never exposed to a later one's weaker checks."""
 
-    progress: int = 0
-    """Stages the scale passed (lines, centre, coarse pencil, rings measured, tilt,
-    diameters): of several refusals the most telling is shown."""
-    floor: float | None = None
-    """The darkness threshold's floor (:func:`_threshold_map`), set by the first scale."""
     ring0_hidden: bool = False
     """Rays may start at ring 1 (:func:`~calibration.detection.ray_kernels.label_rays`): the
     second pass, for views every scale refused."""
@@ -168,8 +167,30 @@ class _ScaleState:
     relabel: bool = False
     """The first pass's candidate centre (or, where it has none, the one bundles of rays at
     :data:`BUNDLE_Z_LINE` find rings around) and its rays' crossings named again by one
-    homography of the whole target (:func:`relabelled_pencil`): the last pass, for views all
-    others refused."""
+    homography of the whole target (:func:`relabelled_pencil`): the last regular pass, for
+    views all others refused."""
+    bundle_centre: bool = False
+    """The candidate centre is the crossing around which bundles of rays at
+    :data:`BUNDLE_Z_LINE` find the most rings, and its rays are bundles too: a faint target
+    whose lines reach the single rays' threshold only here and there (randomised view 12:39,
+    contrast 21 grey levels under 1.9 px of blur, a stripe over O), where single rays find
+    more rings in order around a crossing of clutter. The last sweep's."""
+    note: str = ""
+    """Added to the reason of a refusal this pass got furthest with."""
+
+
+@dataclass
+class _ScaleState:
+    """What one closing scale of :func:`detect_concentric` tells the next, and each pass over
+    the scales the later ones."""
+
+    progress: int = 0
+    """Stages the scale passed (lines, centre, coarse pencil, rings measured, tilt,
+    diameters): of several refusals the most telling is shown."""
+    floor: float | None = None
+    """The darkness threshold's floor (:func:`_threshold_map`), set by the first scale."""
+    now: _Pass = field(default_factory=lambda: _Pass())
+    """The pass being run."""
     centres: dict[tuple[int, bool, bool, bool, bool], _Centre | None] = field(default_factory=dict)
     """The candidate centre each scale (closing kernel, px; rays from ring 1 or not; climbed
     or not; from the wide lines or not; judged by bundles of rays or not) chose, None for
@@ -180,6 +201,12 @@ class _ScaleState:
     bright: BrightMasks | None = None
     """The image's bright masks, each made once for every scale and pass (set with the
     image)."""
+    recovery: RingRecovery = field(default_factory=RingRecovery)
+    """Whether the fine stage measures rings the coarse stage missed from two it measured
+    (the last sweep), and whether a scale's fine stage stopped at two rings without it."""
+    two_rings: list[tuple[_Pass, int]] = field(default_factory=list)
+    """The passes and scales (closing kernel, px) whose fine stage stopped at two rings: the
+    last sweep's."""
 
     def reached(self, stage: int) -> None:
         """Told by the fine stage which of its stages the scale passed."""
@@ -237,39 +264,67 @@ def detect_concentric(
     # crossing to where the rays find the most rings. Long clutter edges may outrank a small
     # target's diameters among the Hough lines: the seventh pass tries the weaker lines too.
     # Where rays named whole sectors a ring or two off (faint inner rings, a centre off O),
-    # every ring's conic mixes rings: the last pass names the crossings again by one
+    # every ring's conic mixes rings: the last regular pass names the crossings again by one
     # homography of the whole target.
-    for ring0_hidden, joint, bundle_z_line, climb, wide, relabel in (
-        (False, False, 0.0, False, False, False),
-        (True, False, 0.0, False, False, False),
-        (False, True, 0.0, False, False, False),
-        (False, False, Z_LINE, False, False, False),
-        (False, False, BUNDLE_Z_LINE, False, False, False),
-        (False, False, 0.0, True, False, False),
-        (False, False, 0.0, False, True, False),
-        (False, False, 0.0, False, False, True),
-    ):
-        state.ring0_hidden, state.joint, state.bundle_z_line = ring0_hidden, joint, bundle_z_line
-        state.climb, state.wide, state.relabel = climb, wide, relabel
-        for kernel in kernels:
-            state.progress = 0
-            obs = _detect_with_kernel(img, target, s, kernel, size, state)
-            if obs:
-                return obs
-            if state.progress > furthest:  # the reason of the scale that got furthest
-                if ring0_hidden:
-                    obs = replace(obs, reason=f"{obs.reason} (rays labelled from ring 1)")
-                elif joint:  # (further than the first pass: the rings were fitted together)
-                    obs = replace(obs, reason=f"{obs.reason} (rings fitted together)")
-                elif bundle_z_line:
-                    obs = replace(obs, reason=f"{obs.reason} (rays in bundles)")
-                elif climb:
-                    obs = replace(obs, reason=f"{obs.reason} (centre moved to the most rings)")
-                elif wide:
-                    obs = replace(obs, reason=f"{obs.reason} (weaker Hough lines tried)")
-                elif relabel:
-                    obs = replace(obs, reason=f"{obs.reason} (crossings named again)")
-                refused, furthest = obs, state.progress
+    # A last sweep, for views every regular pass refused: where a fine stage measured two
+    # rings only (a small target's innermost ring under a laser stripe over O, its outermost
+    # too faint for the rays), the rings those two predict are measured, over the passes and
+    # scales that stopped so; and where single rays find more rings in order around a
+    # crossing of clutter than around a faint target's O, the centre is judged by bundles.
+    # The sweep accepts a view only with its orientation marker found.
+    regular = (
+        _Pass(),
+        _Pass(ring0_hidden=True, note="rays labelled from ring 1"),
+        # (further than the first pass: the rings were fitted together)
+        _Pass(joint=True, note="rings fitted together"),
+        _Pass(bundle_z_line=Z_LINE, note="rays in bundles"),
+        _Pass(bundle_z_line=BUNDLE_Z_LINE, note="rays in bundles"),
+        _Pass(climb=True, note="centre moved to the most rings"),
+        _Pass(wide=True, note="weaker Hough lines tried"),
+        _Pass(relabel=True, note="crossings named again"),
+    )
+    passes = [(p, kernel) for p in regular for kernel in kernels]
+    last_sweep = False
+    while passes:
+        state.now, kernel = passes.pop(0)
+        state.progress = 0
+        state.recovery.wanted = False
+        obs = _detect_with_kernel(img, target, s, kernel, size, state)
+        if obs and last_sweep and obs.labelling != "unique":
+            # The last sweep's checks are the weakest: the marker, found where the labelling
+            # puts it, is the independent evidence it needs (a target-free view of dark
+            # paper gave three rings of a four-ring spec around a crossing of grain).
+            obs = TargetObservation.failed(
+                "a target found only by the last sweep without its orientation marker: "
+                "not accepted",
+                size,
+                KIND,
+            )
+        elif obs:
+            return obs
+        if state.progress > furthest:  # the reason of the scale that got furthest
+            if state.now.note:
+                obs = replace(obs, reason=f"{obs.reason} ({state.now.note})")
+            refused, furthest = obs, state.progress
+        if state.recovery.wanted:
+            state.two_rings.append((state.now, kernel))
+        if not passes and not last_sweep:
+            last_sweep, state.recovery.enabled = True, True
+            passes = [
+                (replace(p, note="missing rings measured from two"), kernel)
+                for p, kernel in state.two_rings
+            ]
+            passes += [
+                (
+                    _Pass(
+                        bundle_z_line=BUNDLE_Z_LINE,
+                        bundle_centre=True,
+                        note="centre judged by bundles of rays",
+                    ),
+                    kernel,
+                )
+                for kernel in kernels
+            ]
     return refused  # type: ignore[return-value]
 
 
@@ -382,19 +437,21 @@ def _detect_with_kernel(
     z_rays, lines = state.coarse[kernel].z_rays, state.coarse[kernel].lines
     if len(lines) < 2:
         return TargetObservation.failed("no pair of diameter lines found", size, KIND)
-    if state.wide:
+    if state.now.wide:
         lines = _distinct_lines(state.coarse[kernel].hough, size, WIDE_HOUGH_LINES)
         if len(lines) <= HOUGH_LINES:  # every crossing was tried
             return TargetObservation.failed("no weaker Hough lines to try", size, KIND)
 
     state.progress = 1
     # The candidates' rays are labelled alike in every pass with the same ``ring0_hidden``.
-    key = (kernel, state.ring0_hidden, False, state.wide, False)
+    key = (kernel, state.now.ring0_hidden, False, state.now.wide, False)
     if key not in state.centres:
-        first_new = HOUGH_LINES if state.wide else 0
-        state.centres[key] = _best_centre(z_rays, lines, radii, size, state.ring0_hidden, first_new)
-    bundled = state.bundle_z_line
-    if state.relabel and state.centres[key] is None:
+        first_new = HOUGH_LINES if state.now.wide else 0
+        state.centres[key] = _best_centre(
+            z_rays, lines, radii, size, state.now.ring0_hidden, first_new
+        )
+    bundled = state.now.bundle_z_line
+    if state.now.bundle_centre or (state.now.relabel and state.centres[key] is None):
         # Rings too faint for single rays around every crossing (their own density raises
         # the local threshold: view 16:11): the crossings judged by bundles of rays.
         key, bundled = (kernel, False, False, False, True), BUNDLE_Z_LINE
@@ -402,13 +459,13 @@ def _detect_with_kernel(
             state.centres[key] = _best_centre(
                 z_rays, lines, radii, size, False, 0, BUNDLE_Z_LINE, BUNDLE_STEP_PX
             )
-    if state.climb:
-        start, key = state.centres[key], (kernel, state.ring0_hidden, True, False, False)
+    if state.now.climb:
+        start, key = state.centres[key], (kernel, state.now.ring0_hidden, True, False, False)
         if key not in state.centres:
             state.centres[key] = (
                 None
                 if start is None
-                else _climbed_centre(z_rays, start, radii, kernel, state.ring0_hidden)
+                else _climbed_centre(z_rays, start, radii, kernel, state.now.ring0_hidden)
             )
         climbed = state.centres[key]
         if climbed is None or np.array_equal(climbed[0], start[0]):
@@ -429,15 +486,15 @@ def _detect_with_kernel(
         bundled or Z_LINE,
         axis_angles,
         n_rays=384,
-        ring0_hidden=state.ring0_hidden,
+        ring0_hidden=state.now.ring0_hidden,
         bundle_step_px=BUNDLE_STEP_PX if bundled else 0.0,
     )
 
     # -- initial conics and the pencil centre
-    if state.relabel:
+    if state.now.relabel:
         pencil = relabelled_pencil(per_ring, radii, c, s.min_rings)
     else:
-        pencil = _coarse_pencil(per_ring, radii, c, s.min_rings, state.joint)
+        pencil = _coarse_pencil(per_ring, radii, c, s.min_rings, state.now.joint)
     if isinstance(pencil, str):
         return TargetObservation.failed(pencil, size, KIND)
     conics, c = pencil
@@ -465,5 +522,6 @@ def _detect_with_kernel(
         state.bright,
         # A last resort's rings must agree along the rays as right views do (randomised view
         # 2:5, 62 deg steep and faint, gave 0.11 gaps with a point 2.3 px off).
-        AGREED_RAY_DEPARTURE if state.relabel else MAX_RAY_DEPARTURE,
+        AGREED_RAY_DEPARTURE if state.now.relabel else MAX_RAY_DEPARTURE,
+        state.recovery,
     )

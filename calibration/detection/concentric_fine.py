@@ -35,6 +35,7 @@ from calibration.detection.concentric_labels import (
     _named_points,
     label_up_to_symmetry,
 )
+from calibration.detection.concentric_missing import RingRecovery, recovered_rings
 from calibration.detection.concentric_rays import (
     BrightMasks,
     _coarse_darkness,
@@ -294,6 +295,7 @@ def measure_and_label(
     reached: Callable[[int], None],
     bright: BrightMasks,
     max_departure: float = MAX_RAY_DEPARTURE,
+    recovery: RingRecovery | None = None,
 ) -> TargetObservation:
     """The target measured to sub-pixel, checked and labelled, from the coarse stage's pencil.
 
@@ -326,6 +328,10 @@ def measure_and_label(
         How far the rings may depart from the radii along the rays from O, in ring gaps
         (:func:`ray_departure`): a last pass asks for :data:`AGREED_RAY_DEPARTURE`, as
         well as right views agree.
+    recovery : RingRecovery, optional
+        Whether rings the coarse stage missed are measured from two measured ones
+        (:func:`~calibration.detection.concentric_missing.recovered_rings`), and where to
+        note that a measurement stopped at two rings without it.
 
     Returns
     -------
@@ -334,7 +340,8 @@ def measure_and_label(
         reason.
     """
     args = (img, target, s)
-    later = (hough_pair, z_rays, kernel, coarse_maps, reached, bright, max_departure)
+    recovery = recovery or RingRecovery()
+    later = (hough_pair, z_rays, kernel, coarse_maps, reached, bright, max_departure, recovery)
     wider = _WiderSpacing()
     first = _measure(*args, conics, c, *later, wider)
     if wider.conics is None:
@@ -396,6 +403,7 @@ def _measure(
     reached: Callable[[int], None],
     bright_masks: BrightMasks,
     max_departure: float,
+    recovery: RingRecovery,
     wider: _WiderSpacing | None,
 ) -> TargetObservation:
     """:func:`measure_and_label` with the fine stage's windows sized by ``conics``; sets
@@ -447,6 +455,24 @@ def _measure(
             )
             if res is not None:
                 rings[k] = res
+        if refinement == 0 and 2 <= len(rings) < s.min_rings:
+            if recovery.enabled:
+                rings = recovered_rings(
+                    rings,
+                    radii,
+                    spline,
+                    c,
+                    dirs,
+                    angles,
+                    axis_lines,
+                    half_window,
+                    spacing_px,
+                    s,
+                    (w, h),
+                    bright,
+                )
+            else:
+                recovery.wanted = True
         if len(rings) < s.min_rings:
             return TargetObservation.failed(
                 f"no ring pencil found: {len(rings)} rings measured, expected >= {s.min_rings}",
@@ -467,7 +493,8 @@ def _measure(
                 size,
                 KIND,
             )
-        if refinement == 0 and wider is not None:
+        if refinement == 0 and wider is not None and all(k in coarse for k in rings):
+            # (rings named or measured from the pencil have no coarse conics to start from)
             kept = {k: coarse[k] for k in rings}
             kept_spacing_px = _min_spacing_px(kept, coarse_c)
             if kept_spacing_px > RESIZE_SPACING * spacing_px:
