@@ -157,6 +157,14 @@ def _detected_stripe_view(
         # refused until the twentieth session: a wide stripe 4 px from O leaves each ring
         # over about 105 deg, too short an arc for a conic of its own (fitted jointly now)
         (0, 25, "a stripe over O: each ring seen over too short an arc for its own conic"),
+        # refused until the forty-third session: a wide stripe over O hides ring 0 and the
+        # rays name ring 1 as ring 0; the outermost ring too faint for them. Two rings
+        # measured, named by their ratio, predict the others (the last sweep)
+        (3, 69, "a stripe over a small target's O: two rings measured, a ring off"),
+        # and until then: single rays find more rings in order around a crossing of clutter
+        # than around a faint target's O (the last sweep judges the centres by bundles)
+        (12, 39, "contrast 21 under 1.9 px of blur, a stripe by O: the centre 74 px off"),
+        (23, 38, "11 rings, O 64 px from the border, the stripe by O: a clutter crossing"),
     ],
 )
 def test_views_with_a_laser_stripe_over_the_target_are_detected_and_labelled_right(
@@ -348,6 +356,16 @@ def test_target_free_views_are_refused():
         obs = detect_target(v.image, v.spec)
         assert not obs
         assert obs.reason
+
+
+def test_the_last_sweep_accepts_no_target_without_its_marker():
+    # Target-free dark paper (the benchmark's seed 2, view 14): bundles of rays found three
+    # rings of the four-ring spec around a crossing of grain, and no marker
+    rng = np.random.default_rng([2, 14, 0])
+    v = render_view(draw_conditions(rng, has_target=False), rng)
+    obs = detect_target(v.image, v.spec)
+    assert not obs
+    assert "last sweep without its orientation marker" in obs.reason
 
 
 @pytest.mark.slow
