@@ -156,20 +156,13 @@ def test_of_several_scales_the_refusal_that_got_furthest_is_reported(monkeypatch
                    (3, "too oblique"), (5, "as far, second"), (1, "third"), (2, "third, too"),
                    (4, "fourth"), (5, "fourth, as far"), (1, "fifth"), (5, "fifth, as far"),
                    (2, "sixth"), (5, "sixth, as far"), (1, "seventh"),
-                   (5, "seventh, as far"), (3, "eighth"), (5, "eighth, as far")])  # fmt: skip
+                   (5, "seventh, as far"), (3, "eighth"), (5, "eighth, as far"),
+                   (1, "last sweep"), (5, "last sweep, as far")])  # fmt: skip
     passes = []
 
     def fake(img, target, s, kernel, size, state):
-        passes.append(
-            (
-                state.ring0_hidden,
-                state.joint,
-                state.bundle_z_line,
-                state.climb,
-                state.wide,
-                state.relabel,
-            )
-        )
+        p = state.now
+        passes.append((p.ring0_hidden, p.joint, p.bundle_z_line, p.climb, p.wide, p.relabel))
         state.progress, reason = next(stages)
         return TargetObservation.failed(reason, size, "concentric_circles")
 
@@ -191,27 +184,62 @@ def test_of_several_scales_the_refusal_that_got_furthest_is_reported(monkeypatch
         [(False, False, 0.0, False, True, False)],
     )
     named_again = [(False, False, 0.0, False, False, True)]
-    assert passes == [p for p in single + bundles + climbed + wide + named_again for _ in range(2)]
+    # (the last sweep: no pass stopped at two rings, so only the bundle-judged centres)
+    last = [(False, False, concentric.BUNDLE_Z_LINE, False, False, False)]
+    regular = single + bundles + climbed + wide + named_again
+    assert passes == [p for p in regular + last for _ in range(2)]
     # a reason of a later pass that got further says where it comes from
     firsts = [(1, "first"), (2, "first, too")]
-    stages = iter(firsts + [(3, "second"), (6, "marker not found")] + [(1, "later")] * 12)
+    stages = iter(firsts + [(3, "second"), (6, "marker not found")] + [(1, "later")] * 14)
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert obs.reason == "marker not found (rays labelled from ring 1)"
-    stages = iter(firsts + [(2, "second"), (1, "second, too"), (4, "too oblique")] + [(1, "")] * 11)
+    stages = iter(firsts + [(2, "second"), (1, "second, too"), (4, "too oblique")] + [(1, "")] * 13)
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert obs.reason == "too oblique (rings fitted together)"
-    stages = iter(firsts + [(1, "later")] * 7 + [(3, "1 rings measured")] + [(1, "")] * 6)
+    stages = iter(firsts + [(1, "later")] * 7 + [(3, "1 rings measured")] + [(1, "")] * 8)
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert obs.reason == "1 rings measured (rays in bundles)"
-    stages = iter(firsts + [(1, "later")] * 9 + [(4, "2 rings measured")] + [(1, "")] * 4)
+    stages = iter(firsts + [(1, "later")] * 9 + [(4, "2 rings measured")] + [(1, "")] * 6)
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert obs.reason == "2 rings measured (centre moved to the most rings)"
-    stages = iter(firsts + [(1, "later")] * 11 + [(3, "1 rings measured")] + [(1, "")] * 2)
+    stages = iter(firsts + [(1, "later")] * 11 + [(3, "1 rings measured")] + [(1, "")] * 4)
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert obs.reason == "1 rings measured (weaker Hough lines tried)"
-    stages = iter(firsts + [(1, "later")] * 13 + [(3, "0 rings measured")])
+    stages = iter(firsts + [(1, "later")] * 13 + [(3, "0 rings measured")] + [(1, "")] * 2)
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert obs.reason == "0 rings measured (crossings named again)"
+
+
+def test_the_last_sweep_repeats_two_ring_passes_and_wants_the_marker(monkeypatch):
+    # The third pass (rings fitted together) stops at two rings at the first scale: the last
+    # sweep runs it again with the missing rings measured, then the bundle-judged centres;
+    # a detection there without the marker is refused, one with it is returned
+    calls = []
+
+    def fake(img, target, s, kernel, size, state, found="symmetry"):
+        p = state.now
+        calls.append((p.joint, p.bundle_centre, state.recovery.enabled, p.note, kernel))
+        state.progress = 1
+        if p.joint and not state.recovery.enabled and len(calls) == 5:
+            state.recovery.wanted = True
+        if state.recovery.enabled and p.bundle_centre and kernel == 5:
+            state.progress = 6  # (a detection passed every stage)
+            return TargetObservation(ok=True, reason="", image_size=size, labelling=found)
+        return TargetObservation.failed("refused", size, "concentric_circles")
+
+    monkeypatch.setattr(concentric, "_detect_with_kernel", fake)
+    obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
+    assert not obs
+    assert "last sweep without its orientation marker" in obs.reason
+    assert [c[2] for c in calls] == [False] * 16 + [True] * 3
+    assert calls[4][:3] == (True, False, False)  # the third pass's first scale
+    assert calls[16] == (True, False, True, "missing rings measured from two", calls[4][4])
+    assert [c[1] for c in calls[17:]] == [True, True]
+    assert calls[17][3] == "centre judged by bundles of rays"
+    calls.clear()
+    monkeypatch.setattr(concentric, "_detect_with_kernel", lambda *a: fake(*a, found="unique"))
+    assert detect_concentric(np.full((400, 400), 0.5), demo_target())
+    assert len(calls) == 19
 
 
 def test_a_centre_off_the_rings_climbs_onto_the_diameter_and_one_in_noise_stays():
@@ -279,14 +307,16 @@ def test_passes_labelling_from_ring_0_search_each_scales_centres_once(monkeypatc
     # The third to sixth passes label the candidates' rays as the first does: they take its
     # chosen centres instead of searching the line crossings again (the sixth climbs from
     # them).
-    # The last pass searches only the crossings the others did not try (a line after the
-    # first HOUGH_LINES in each pair).
+    # The weaker lines' pass searches only the crossings the others did not try (a line after
+    # the first HOUGH_LINES in each pair).
     calls = []
     real = concentric._best_centre
 
-    def spy(z_rays, lines, radii, size, ring0_hidden, first_new=0):
-        calls.append((ring0_hidden, first_new, len(lines)))
-        return real(z_rays, lines, radii, size, ring0_hidden, first_new)
+    def spy(z_rays, lines, radii, size, ring0_hidden, first_new=0, *bundles):
+        (bundled if bundles else calls).append((ring0_hidden, first_new, len(lines)))
+        return real(z_rays, lines, radii, size, ring0_hidden, first_new, *bundles)
+
+    bundled = []
 
     monkeypatch.setattr(concentric, "_best_centre", spy)
     rng = np.random.default_rng(17)
@@ -299,6 +329,10 @@ def test_passes_labelling_from_ring_0_search_each_scales_centres_once(monkeypatc
     assert len(first) - from_ring_1 == from_ring_1
     wide = [(r, f, n) for r, f, n in calls if f]
     assert wide and all(not r and f == HOUGH_LINES and n > f for r, f, n in wide)
+    # the crossings judged by bundles of rays (the last regular pass where it has no centre,
+    # the last sweep): searched once a scale, from ring 0, over the first lines
+    assert 0 < len(bundled) <= len(first) - from_ring_1
+    assert all(not r and f == 0 for r, f, _ in bundled)
 
 
 @pytest.mark.slow
