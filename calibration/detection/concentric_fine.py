@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 from numpy.typing import NDArray
@@ -439,38 +440,26 @@ def _measure(
         n_rays = int(np.clip(_perimeter_px(conics[max(conics)], c) / 3.0, 180, 1440))
         angles = np.linspace(0, 2 * np.pi, n_rays, endpoint=False)
         dirs = np.column_stack([np.cos(angles), np.sin(angles)])
+        refine = partial(
+            _refine_ring,
+            spline,
+            c=c,
+            dirs=dirs,
+            angles=angles,
+            axis_lines=axis_lines,
+            half_window=half_window,
+            spacing_px=spacing_px,
+            s=s,
+            size=(w, h),
+            bright=bright,
+        )
         for k in sorted(conics):
-            res = _refine_ring(
-                spline,
-                conics[k],
-                c,
-                dirs,
-                angles,
-                axis_lines,
-                half_window,
-                spacing_px,
-                s,
-                (w, h),
-                bright,
-            )
+            res = refine(conics[k])
             if res is not None:
                 rings[k] = res
         if refinement == 0 and 2 <= len(rings) < s.min_rings:
             if recovery.enabled:
-                rings = recovered_rings(
-                    rings,
-                    radii,
-                    spline,
-                    c,
-                    dirs,
-                    angles,
-                    axis_lines,
-                    half_window,
-                    spacing_px,
-                    s,
-                    (w, h),
-                    bright,
-                )
+                rings = recovered_rings(rings, radii, c, refine)
             else:
                 recovery.wanted = True
         if len(rings) < s.min_rings:

@@ -17,18 +17,13 @@ measures never depends on it.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
-from calibration.detection.concentric_rings import (
-    ConcentricDetectorSettings,
-    SplineWindow,
-    _ellipse_ok,
-    _pair_agrees,
-    _refine_ring,
-)
+from calibration.detection.concentric_rings import _ellipse_ok, _pair_agrees
 from calibration.detection.conics import pencil_member
 
 __all__ = ["RingRecovery", "recovered_rings"]
@@ -67,16 +62,8 @@ def _namings(rings: dict[int, _Ring], radii: NDArray) -> list[int]:
 def recovered_rings(
     rings: dict[int, _Ring],
     radii: NDArray,
-    spline: SplineWindow,
     c: NDArray,
-    dirs: NDArray,
-    angles: NDArray,
-    axis_lines: list[NDArray],
-    half_window: float,
-    spacing_px: float,
-    s: ConcentricDetectorSettings,
-    size: tuple[int, int],
-    bright: NDArray | None,
+    refine: Callable[[NDArray], _Ring | None],
 ) -> dict[int, _Ring]:
     """The measured rings, named by their radius ratios, and the missing rings they predict.
 
@@ -88,9 +75,12 @@ def recovered_rings(
         gives them.
     radii : ndarray, shape (K,)
         The spec's ring radii, mm.
-    spline, c, dirs, angles, axis_lines, half_window, spacing_px, s, size, bright
-        As the fine stage refines the coarse rings with
-        (:func:`~calibration.detection.concentric_rings._refine_ring`).
+    c : ndarray, shape (2,)
+        The pencil's centre, px: a predicted conic must be an ellipse around it.
+    refine : callable
+        The fine stage's refinement of one ring from a conic ``(3, 3)``
+        (:func:`~calibration.detection.concentric_rings._refine_ring` with the fine stage's
+        windows, rays and image), None where it finds no ring.
 
     Returns
     -------
@@ -116,9 +106,7 @@ def recovered_rings(
             continue
         if not np.all(np.isfinite(predicted)) or not _ellipse_ok(predicted, c):
             continue
-        res = _refine_ring(
-            spline, predicted, c, dirs, angles, axis_lines, half_window, spacing_px, s, size, bright
-        )
+        res = refine(predicted)
         if res is not None:
             out[k] = res
     return out

@@ -65,7 +65,7 @@ def test_the_one_naming_with_the_specs_ratios_is_found() -> None:
     geometric = np.array([10.0, 20.0, 40.0, 80.0])
     pair = {k: (np.zeros((0, 2)), _ring_conic(hom, geometric[k + 1]), np.zeros(1)) for k in (0, 1)}
     assert _namings(pair, geometric) == []
-    assert recovered_rings(pair, geometric, *([None] * 10)) is pair
+    assert recovered_rings(pair, geometric, np.zeros(2), lambda conic: None) is pair
 
 
 def test_missing_rings_are_measured_where_the_two_rings_pencil_puts_them() -> None:
@@ -83,7 +83,9 @@ def test_missing_rings_are_measured_where_the_two_rings_pencil_puts_them() -> No
     # Rings 1 and 2 measured, named 0 and 1 by rays that missed ring 0
     measured = {k - 1: _refine_ring(spline, truth[k], *common) for k in (1, 2)}
     assert all(ring is not None for ring in measured.values())
-    out = recovered_rings(measured, RADII_MM, spline, *common)
+    out = recovered_rings(
+        measured, RADII_MM, o_px, lambda conic: _refine_ring(spline, conic, *common)
+    )
     assert sorted(out) == [0, 1, 2, 3]
     assert out[1] is measured[0] and out[2] is measured[1]
     for k, (_, conic, _) in out.items():
@@ -93,4 +95,6 @@ def test_missing_rings_are_measured_where_the_two_rings_pencil_puts_them() -> No
 
 def test_fewer_than_two_rings_are_refused() -> None:
     with pytest.raises(ValueError, match="expected at least 2 measured rings, got 1"):
-        recovered_rings({0: (np.zeros((0, 2)), np.eye(3), np.zeros(1))}, RADII_MM, *([None] * 10))
+        recovered_rings(
+            {0: (np.zeros((0, 2)), np.eye(3), np.zeros(1))}, RADII_MM, np.zeros(2), lambda q: None
+        )
