@@ -165,10 +165,12 @@ class _Pass:
     :data:`HOUGH_LINES` (up to :data:`WIDE_HOUGH_LINES`): the seventh pass, for views the
     first six refused."""
     relabel: bool = False
-    """The first pass's candidate centre (or, where it has none, the one bundles of rays at
-    :data:`BUNDLE_Z_LINE` find rings around) and its rays' crossings named again by one
+    """The first pass's candidate centre and its rays' crossings named again by one
     homography of the whole target (:func:`relabelled_pencil`): the last regular pass, for
     views all others refused."""
+    bundle_fallback: bool = False
+    """Where the pass has no candidate centre, the one bundles of rays at
+    :data:`BUNDLE_Z_LINE` find rings around is taken: the last regular pass."""
     bundle_centre: bool = False
     """The candidate centre is the crossing around which bundles of rays at
     :data:`BUNDLE_Z_LINE` find the most rings, and its rays are bundles too: a faint target
@@ -213,6 +215,40 @@ class _ScaleState:
         self.progress = stage
 
 
+#: The regular passes over the closing scales, in order (see :func:`detect_concentric`).
+REGULAR_PASSES = (
+    _Pass(),
+    _Pass(ring0_hidden=True, note="rays labelled from ring 1"),
+    # (further than the first pass: the rings were fitted together)
+    _Pass(joint=True, note="rings fitted together"),
+    _Pass(bundle_z_line=Z_LINE, note="rays in bundles"),
+    _Pass(bundle_z_line=BUNDLE_Z_LINE, note="rays in bundles"),
+    _Pass(climb=True, note="centre moved to the most rings"),
+    _Pass(wide=True, note="weaker Hough lines tried"),
+    _Pass(relabel=True, bundle_fallback=True, note="crossings named again"),
+)
+
+#: The last sweep's passes after the repeated two-ring ones: the candidate centres the
+#: bundles of rays judge.
+SWEEP_PASSES = (
+    _Pass(bundle_z_line=BUNDLE_Z_LINE, bundle_centre=True, note="centre judged by bundles of rays"),
+)
+
+
+def _regular_passes(kernels: list[int]) -> list[tuple[_Pass, int]]:
+    """Every regular pass at every closing scale (px), in order."""
+    return [(p, kernel) for p in REGULAR_PASSES for kernel in kernels]
+
+
+def _sweep_passes(
+    two_rings: list[tuple[_Pass, int]], kernels: list[int]
+) -> list[tuple[_Pass, int]]:
+    """The last sweep: the passes and scales that stopped at two rings again (their missing
+    rings measured), then :data:`SWEEP_PASSES` at every scale."""
+    again = [(replace(p, note="missing rings measured from two"), k) for p, k in two_rings]
+    return again + [(p, kernel) for p in SWEEP_PASSES for kernel in kernels]
+
+
 def detect_concentric(
     image: NDArray,
     target: ConcentricCirclesTarget,
@@ -247,7 +283,6 @@ def detect_concentric(
     # or far target, closely spaced rings) when that finds no target.
     first = max(9, min(h, w) // 40)
     kernels = sorted({first, max(5, first // 2), max(5, first // 4)}, reverse=True)
-    refused, furthest = None, -1
     state = _ScaleState(bright=BrightMasks(img))
     # On a small, steep target the innermost ring's image can merge with the diameters'
     # crossing at O, and every ray then names ring 1 as ring 0. Rays starting at ring 1 are
@@ -272,59 +307,34 @@ def detect_concentric(
     # scales that stopped so; and where single rays find more rings in order around a
     # crossing of clutter than around a faint target's O, the centre is judged by bundles.
     # The sweep accepts a view only with its orientation marker found.
-    regular = (
-        _Pass(),
-        _Pass(ring0_hidden=True, note="rays labelled from ring 1"),
-        # (further than the first pass: the rings were fitted together)
-        _Pass(joint=True, note="rings fitted together"),
-        _Pass(bundle_z_line=Z_LINE, note="rays in bundles"),
-        _Pass(bundle_z_line=BUNDLE_Z_LINE, note="rays in bundles"),
-        _Pass(climb=True, note="centre moved to the most rings"),
-        _Pass(wide=True, note="weaker Hough lines tried"),
-        _Pass(relabel=True, note="crossings named again"),
-    )
-    passes = [(p, kernel) for p in regular for kernel in kernels]
-    last_sweep = False
-    while passes:
-        state.now, kernel = passes.pop(0)
-        state.progress = 0
-        state.recovery.wanted = False
-        obs = _detect_with_kernel(img, target, s, kernel, size, state)
-        if obs and last_sweep and obs.labelling != "unique":
-            # The last sweep's checks are the weakest: the marker, found where the labelling
-            # puts it, is the independent evidence it needs (a target-free view of dark
-            # paper gave three rings of a four-ring spec around a crossing of grain).
-            obs = TargetObservation.failed(
-                "a target found only by the last sweep without its orientation marker: "
-                "not accepted",
-                size,
-                KIND,
-            )
-        elif obs:
-            return obs
-        if state.progress > furthest:  # the reason of the scale that got furthest
-            if state.now.note:
-                obs = replace(obs, reason=f"{obs.reason} ({state.now.note})")
-            refused, furthest = obs, state.progress
-        if state.recovery.wanted:
-            state.two_rings.append((state.now, kernel))
-        if not passes and not last_sweep:
-            last_sweep, state.recovery.enabled = True, True
-            passes = [
-                (replace(p, note="missing rings measured from two"), kernel)
-                for p, kernel in state.two_rings
-            ]
-            passes += [
-                (
-                    _Pass(
-                        bundle_z_line=BUNDLE_Z_LINE,
-                        bundle_centre=True,
-                        note="centre judged by bundles of rays",
-                    ),
-                    kernel,
+    refused, furthest = None, -1
+    for sweep in (False, True):
+        # (the sweep's passes depend on which regular ones stopped at two rings)
+        todo = _sweep_passes(state.two_rings, kernels) if sweep else _regular_passes(kernels)
+        state.recovery.enabled = sweep
+        for state.now, kernel in todo:
+            state.progress = 0
+            state.recovery.wanted = False
+            obs = _detect_with_kernel(img, target, s, kernel, size, state)
+            if obs and sweep and obs.labelling != "unique":
+                # The last sweep's checks are the weakest: the marker, found where the
+                # labelling puts it, is the independent evidence it needs (a target-free view
+                # of dark paper gave three rings of a four-ring spec around a crossing of
+                # grain).
+                obs = TargetObservation.failed(
+                    "a target found only by the last sweep without its orientation marker: "
+                    "not accepted",
+                    size,
+                    KIND,
                 )
-                for kernel in kernels
-            ]
+            elif obs:
+                return obs
+            if state.progress > furthest:  # the reason of the scale that got furthest
+                if state.now.note:
+                    obs = replace(obs, reason=f"{obs.reason} ({state.now.note})")
+                refused, furthest = obs, state.progress
+            if state.recovery.wanted:
+                state.two_rings.append((state.now, kernel))
     return refused  # type: ignore[return-value]
 
 
@@ -451,7 +461,7 @@ def _detect_with_kernel(
             z_rays, lines, radii, size, state.now.ring0_hidden, first_new
         )
     bundled = state.now.bundle_z_line
-    if state.now.bundle_centre or (state.now.relabel and state.centres[key] is None):
+    if state.now.bundle_centre or (state.now.bundle_fallback and state.centres[key] is None):
         # Rings too faint for single rays around every crossing (their own density raises
         # the local threshold: view 16:11): the crossings judged by bundles of rays.
         key, bundled = (kernel, False, False, False, True), BUNDLE_Z_LINE
