@@ -38,8 +38,9 @@ crossings named again by one homography of the whole target, where rays named wh
 a ring or two off) are later passes over the closing scales, run only where the first
 refused the view, so that a view the first pass measures is never exposed to their weaker
 checks. A last sweep, where every pass refused the view, measures the rings that two
-measured ones predict (:mod:`calibration.detection.concentric_missing`) and judges the
-candidate centres by bundles of rays; it accepts a view only with its orientation marker.
+measured ones predict (:mod:`calibration.detection.concentric_missing`), judges the
+candidate centres by bundles of rays and names the crossings again around the other passes'
+centres; it accepts a view only with its orientation marker.
 
 Steps 1-3 are in :mod:`calibration.detection.concentric_rays` (the candidate centres in
 :mod:`calibration.detection.concentric_centre`), 4-5 in
@@ -165,9 +166,9 @@ class _Pass:
     :data:`HOUGH_LINES` (up to :data:`WIDE_HOUGH_LINES`): the seventh pass, for views the
     first six refused."""
     relabel: bool = False
-    """The first pass's candidate centre and its rays' crossings named again by one
-    homography of the whole target (:func:`relabelled_pencil`): the last regular pass, for
-    views all others refused."""
+    """The candidate centre's rays' crossings named again by one homography of the whole
+    target (:func:`relabelled_pencil`): the last regular pass, from the first pass's
+    centres, for views all others refused; the last sweep's, from the other passes'."""
     bundle_fallback: bool = False
     """Where the pass has no candidate centre, the one bundles of rays at
     :data:`BUNDLE_Z_LINE` find rings around is taken: the last regular pass."""
@@ -229,9 +230,25 @@ REGULAR_PASSES = (
 )
 
 #: The last sweep's passes after the repeated two-ring ones: the candidate centres the
-#: bundles of rays judge.
+#: bundles of rays judge, then the crossings named again by one homography (as in the last
+#: regular pass) around the centres the other regular passes chose. Each is there for the
+#: randomised views it alone measures: a 62 deg steep target whose innermost ring merges
+#: with O (1:64); small targets in a corner among clutter whose diameters rank after the
+#: first Hough lines, where some rays name a ring one off (11:73, 20:3) or start at ring 1
+#: too (14:89); a steep target whose centre the rays from ring 1 climb to (1:38); a faint
+#: steep target under a stripe (16:59).
 SWEEP_PASSES = (
     _Pass(bundle_z_line=BUNDLE_Z_LINE, bundle_centre=True, note="centre judged by bundles of rays"),
+    _Pass(relabel=True, ring0_hidden=True, note="rays from ring 1 named again"),
+    _Pass(relabel=True, wide=True, note="weaker Hough lines' crossings named again"),
+    _Pass(relabel=True, bundle_centre=True, note="bundles' centre named again"),
+    _Pass(
+        relabel=True,
+        wide=True,
+        ring0_hidden=True,
+        note="weaker Hough lines' rays from ring 1 named again",
+    ),
+    _Pass(relabel=True, climb=True, ring0_hidden=True, note="climbed rays from ring 1 named again"),
 )
 
 
@@ -305,8 +322,9 @@ def detect_concentric(
     # rings only (a small target's innermost ring under a laser stripe over O, its outermost
     # too faint for the rays), the rings those two predict are measured, over the passes and
     # scales that stopped so; and where single rays find more rings in order around a
-    # crossing of clutter than around a faint target's O, the centre is judged by bundles.
-    # The sweep accepts a view only with its orientation marker found.
+    # crossing of clutter than around a faint target's O, the centre is judged by bundles;
+    # and where rays around another pass's centre named sectors a ring off, the crossings are
+    # named again there. The sweep accepts a view only with its orientation marker found.
     refused, furthest = None, -1
     for sweep in (False, True):
         # (the sweep's passes depend on which regular ones stopped at two rings)

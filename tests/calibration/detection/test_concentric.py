@@ -157,7 +157,8 @@ def test_of_several_scales_the_refusal_that_got_furthest_is_reported(monkeypatch
                    (4, "fourth"), (5, "fourth, as far"), (1, "fifth"), (5, "fifth, as far"),
                    (2, "sixth"), (5, "sixth, as far"), (1, "seventh"),
                    (5, "seventh, as far"), (3, "eighth"), (5, "eighth, as far"),
-                   (1, "last sweep"), (5, "last sweep, as far")])  # fmt: skip
+                   (1, "last sweep"), (5, "last sweep, as far")]
+                  + [(1, "last sweep, later")] * 10)  # fmt: skip
     passes = []
 
     def fake(img, target, s, kernel, size, state):
@@ -184,36 +185,45 @@ def test_of_several_scales_the_refusal_that_got_furthest_is_reported(monkeypatch
         [(False, False, 0.0, False, True, False)],
     )
     named_again = [(False, False, 0.0, False, False, True)]
-    # (the last sweep: no pass stopped at two rings, so only the bundle-judged centres)
-    last = [(False, False, concentric.BUNDLE_Z_LINE, False, False, False)]
+    # (the last sweep: no pass stopped at two rings, so the bundle-judged centres, then the
+    # crossings named again around the other passes' centres)
+    last = [
+        (False, False, concentric.BUNDLE_Z_LINE, False, False, False),
+        (True, False, 0.0, False, False, True),
+        (False, False, 0.0, False, True, True),
+        (False, False, 0.0, False, False, True),  # (around the bundle-judged centres)
+        (True, False, 0.0, False, True, True),
+        (True, False, 0.0, True, False, True),
+    ]
     regular = single + bundles + climbed + wide + named_again
     assert passes == [p for p in regular + last for _ in range(2)]
     # a reason of a later pass that got further says where it comes from
     firsts = [(1, "first"), (2, "first, too")]
-    stages = iter(firsts + [(3, "second"), (6, "marker not found")] + [(1, "later")] * 14)
+    stages = iter(firsts + [(3, "second"), (6, "marker not found")] + [(1, "later")] * 24)
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert obs.reason == "marker not found (rays labelled from ring 1)"
-    stages = iter(firsts + [(2, "second"), (1, "second, too"), (4, "too oblique")] + [(1, "")] * 13)
+    stages = iter(firsts + [(2, "second"), (1, "second, too"), (4, "too oblique")] + [(1, "")] * 23)
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert obs.reason == "too oblique (rings fitted together)"
-    stages = iter(firsts + [(1, "later")] * 7 + [(3, "1 rings measured")] + [(1, "")] * 8)
+    stages = iter(firsts + [(1, "later")] * 7 + [(3, "1 rings measured")] + [(1, "")] * 18)
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert obs.reason == "1 rings measured (rays in bundles)"
-    stages = iter(firsts + [(1, "later")] * 9 + [(4, "2 rings measured")] + [(1, "")] * 6)
+    stages = iter(firsts + [(1, "later")] * 9 + [(4, "2 rings measured")] + [(1, "")] * 16)
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert obs.reason == "2 rings measured (centre moved to the most rings)"
-    stages = iter(firsts + [(1, "later")] * 11 + [(3, "1 rings measured")] + [(1, "")] * 4)
+    stages = iter(firsts + [(1, "later")] * 11 + [(3, "1 rings measured")] + [(1, "")] * 14)
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert obs.reason == "1 rings measured (weaker Hough lines tried)"
-    stages = iter(firsts + [(1, "later")] * 13 + [(3, "0 rings measured")] + [(1, "")] * 2)
+    stages = iter(firsts + [(1, "later")] * 13 + [(3, "0 rings measured")] + [(1, "")] * 12)
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert obs.reason == "0 rings measured (crossings named again)"
 
 
 def test_the_last_sweep_repeats_two_ring_passes_and_wants_the_marker(monkeypatch):
     # The third pass (rings fitted together) stops at two rings at the first scale: the last
-    # sweep runs it again with the missing rings measured, then the bundle-judged centres;
-    # a detection there without the marker is refused, one with it is returned
+    # sweep runs it again with the missing rings measured, then the bundle-judged centres and
+    # the crossings named again; a detection there without the marker is refused, one with it
+    # is returned
     calls = []
 
     def fake(img, target, s, kernel, size, state, found="symmetry"):
@@ -231,10 +241,11 @@ def test_the_last_sweep_repeats_two_ring_passes_and_wants_the_marker(monkeypatch
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert not obs
     assert "last sweep without its orientation marker" in obs.reason
-    assert [c[2] for c in calls] == [False] * 16 + [True] * 3
+    assert [c[2] for c in calls] == [False] * 16 + [True] * 13
     assert calls[4][:3] == (True, False, False)  # the third pass's first scale
     assert calls[16] == (True, False, True, "missing rings measured from two", calls[4][4])
-    assert [c[1] for c in calls[17:]] == [True, True]
+    # (the bundle-judged centres, and their crossings named again, refused without the marker)
+    assert [c[1] for c in calls[17:]] == [True, True] + [False] * 4 + [True, True] + [False] * 4
     assert calls[17][3] == "centre judged by bundles of rays"
     calls.clear()
     monkeypatch.setattr(concentric, "_detect_with_kernel", lambda *a: fake(*a, found="unique"))
@@ -328,7 +339,9 @@ def test_passes_labelling_from_ring_0_search_each_scales_centres_once(monkeypatc
     assert from_ring_1 > 0  # the second pass searched every scale with lines again
     assert len(first) - from_ring_1 == from_ring_1
     wide = [(r, f, n) for r, f, n in calls if f]
-    assert wide and all(not r and f == HOUGH_LINES and n > f for r, f, n in wide)
+    assert wide and all(f == HOUGH_LINES and n > f for r, f, n in wide)
+    # (from ring 0 in the seventh pass, from ring 1 in the last sweep: once a scale each)
+    assert 2 * sum(r for r, _, _ in wide) == len(wide)
     # the crossings judged by bundles of rays (the last regular pass where it has no centre,
     # the last sweep): searched once a scale, from ring 0, over the first lines
     assert 0 < len(bundled) <= len(first) - from_ring_1
