@@ -5,7 +5,11 @@ from __future__ import annotations
 import numpy as np
 
 from calibration.detection.concentric import _coarse_pencil
-from calibration.detection.concentric_relabel import relabelled_pencil
+from calibration.detection.concentric_relabel import (
+    _residual_jacobian,
+    _residual_px,
+    relabelled_pencil,
+)
 from calibration.detection.concentric_rings import _conic_point_on_ray
 from tests.calibration.synth_concentric import seen_rings
 
@@ -107,3 +111,25 @@ def test_too_few_crossings_are_refused():
     found = relabelled_pencil(per_ring, np.array(RADII_MM), c, min_rings=3)
     assert isinstance(found, str)
     assert "too few" in found
+
+
+def test_the_written_out_jacobian_is_the_residuals_derivative():
+    # The fit's Jacobian is written out (one residual evaluation a step instead of eight); it
+    # must be the residual's derivative everywhere the fit goes, the far side of the
+    # perspective's horizon (w < 0) included.
+    rng = np.random.default_rng(11)
+    for vx_vy in ([2e-4, -1e-4], [4e-3, 4e-3]):
+        params = np.array([0.31, 0.04, 0.22, 410.0, 290.0, *vx_vy])
+        pts = rng.uniform(0.0, 800.0, size=(60, 2))
+        r_mm = rng.uniform(10.0, 60.0, size=60)
+        step = 1e-6 * np.maximum(np.abs(params), 1e-3)
+        numeric = np.column_stack(
+            [
+                (_residual_px(params + h, pts, r_mm) - _residual_px(params - h, pts, r_mm))
+                / (2 * h.sum())
+                for h in np.diag(step)
+            ]
+        )
+        written = _residual_jacobian(params, pts, r_mm)
+        assert np.max(np.abs(written - numeric)) < 1e-6 * np.max(np.abs(numeric))
+    assert np.any(1.0 + (pts - params[3:5]) @ params[5:7] < 0)  # the far side was tried
