@@ -165,6 +165,46 @@ def test_a_diameter_under_a_laser_stripe_is_the_printed_ones_conjugate() -> None
     assert _diameter_lines(z, c, conics, 2.0, 13.0) is None
 
 
+def _with_faint_diameter(angle_deg: float) -> tuple[np.ndarray, dict]:
+    """A darkness map in units of its threshold: five rings 30 px apart and one diameter at
+    20 deg, clear, and a faint one at ``angle_deg`` just under the threshold, in noise: over
+    it on about a fifth of its samples (a thin print in noise), on almost none of the
+    paper's."""
+    c = np.array([320.0, 240.0])
+    radii = (60, 90, 120, 150, 180)
+    z = np.zeros((480, 640))
+    for r in radii:
+        cv2.circle(z, (320, 240), r, 3.0, 2)
+    e = 180 * np.array([np.cos(np.radians(20.0)), np.sin(np.radians(20.0))])
+    cv2.line(z, tuple(int(v) for v in c - e), tuple(int(v) for v in c + e), 3.0, 2)
+    z = cv2.GaussianBlur(z, (0, 0), 0.8)
+    # (a profile 1.5 px wide across the line, 0.85 of the threshold at its middle)
+    a = np.radians(angle_deg)
+    ys, xs = np.mgrid[: z.shape[0], : z.shape[1]]
+    off = -(xs - c[0]) * np.sin(a) + (ys - c[1]) * np.cos(a)
+    along = np.abs((xs - c[0]) * np.cos(a) + (ys - c[1]) * np.sin(a))
+    faint = np.where(along < 180, 0.85 * np.exp(-0.5 * (off / 1.5) ** 2), 0.0)
+    noise = np.random.default_rng(5).normal(0.0, 0.2, z.shape)
+    return np.maximum(z, faint) + noise, {k: _circle(float(r)) for k, r in enumerate(radii)}
+
+
+def test_a_faint_second_diameter_is_taken_where_the_rings_put_it() -> None:
+    # Randomised view 17:101: a faint print whose second diameter is dark on 15-25 % of its
+    # samples, under the 30 % a direction needs on its own; at the first one's conjugate
+    # (perpendicular here: the rings are circles) that will do.
+    c = np.array([320.0, 240.0])
+    z, conics = _with_faint_diameter(110.0)
+    found = _diameter_lines(z, c, conics, 2.0, 13.0)
+    assert found is not None
+    lines, hidden = found
+    assert hidden is None
+    angles = [float(np.degrees(np.arctan2(-ln[0], ln[1])) % 180) for ln in lines]
+    np.testing.assert_allclose(angles, [20.0, 110.0], atol=0.5)
+    # the same faint line anywhere else is not a diameter
+    z, conics = _with_faint_diameter(140.0)
+    assert _diameter_lines(z, c, conics, 2.0, 13.0) is None
+
+
 def test_a_lines_shift_is_measured_within_the_outer_ring():
     # Lines through the centre of rings up to 100 px: a turn by theta moves the far ends by
     # 100 sin(theta), a parallel shift by its offset.

@@ -173,6 +173,10 @@ def _detected_stripe_view(
         # than around a faint target's O (the last sweep judges the centres by bundles)
         (12, 39, "contrast 21 under 1.9 px of blur, a stripe by O: the centre 74 px off"),
         (23, 38, "11 rings, O 64 px from the border, the stripe by O: a clutter crossing"),
+        # refused until the forty-sixth session: a faint print (contrast over noise 3.5,
+        # 1.7 px of blur), the second diameter dark on a fifth of its samples only (the
+        # angular scan takes it where the rings put it, the first one's conjugate)
+        (17, 101, "a faint print, a stripe through O: the second diameter under the scan's bar"),
     ],
 )
 def test_views_with_a_laser_stripe_over_the_target_are_detected_and_labelled_right(
