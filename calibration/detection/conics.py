@@ -17,6 +17,7 @@ from scanner.core.conventions import check_points
 from scanner.core.jit import njit
 
 __all__ = [
+    "circle_tilt_deg",
     "conic_from_coefficients",
     "conic_ray_distances",
     "fit_conic",
@@ -209,6 +210,67 @@ def pencil_member(c1: NDArray, r1: float, c2: NDArray, r2: float, r: float) -> N
     # distances to members predicted from different pairs can be compared.
     member = member / np.linalg.norm(member)
     return -member if np.trace(member[:2, :2]) < 0 else member
+
+
+def circle_tilt_deg(
+    conic: NDArray, centre_px: ArrayLike, principal_px: ArrayLike
+) -> tuple[float, float] | None:
+    """Tilt of a circle's plane from its line of sight, from the circle's image alone.
+
+    The polar of the image of the circle's centre is the plane's vanishing line; it meets
+    the conic at the plane's circular points, which lie on the image of the absolute conic
+    ``K^-T K^-1``. With square pixels and the principal point given, that fixes the focal
+    length; the plane's normal ``K^T l`` and the ray ``K^-1 o`` then give the tilt. The
+    image's flatness alone does not: off the principal point the image plane foreshortens
+    the image by the ray's own obliquity as well (a target tilted 64.6 deg 28 deg off the
+    axis is imaged as flat as one tilted 67 deg on it).
+
+    Parameters
+    ----------
+    conic : ndarray, shape (3, 3)
+        The circle's image conic (any scale).
+    centre_px : array_like, shape (2,)
+        The image of the circle's centre (for concentric circles, their pencil's centre).
+    principal_px : array_like, shape (2,)
+        The principal point assumed, px.
+
+    Returns
+    -------
+    (float, float) or None
+        The angle between the plane's normal and the line of sight through the centre (deg)
+        and the focal length that gave it (px); None where the circular points give no
+        positive focal length (a nearly frontal view: the vanishing line far outside, the
+        tilt near 0 and ill-determined, or a principal point far off).
+    """
+    c = np.asarray(conic, dtype=np.float64)
+    o = np.array([*np.asarray(centre_px, dtype=np.float64), 1.0])
+    u0, v0 = (float(x) for x in np.asarray(principal_px, dtype=np.float64))
+    # In coordinates centred on the principal point the absolute conic's image is
+    # diag(1, 1, f^2) and the ray to o is (x, y, f).
+    shift = np.array([[1.0, 0.0, u0], [0.0, 1.0, v0], [0.0, 0.0, 1.0]])
+    c = shift.T @ c @ shift
+    o = np.linalg.solve(shift, o)
+    line = c @ o
+    # two points spanning the vanishing line, and the line's crossings with the conic
+    p1 = np.cross(line, [line[1], -line[0], 0.0])
+    p2 = np.array([line[1], -line[0], 0.0])
+    a, b, k = float(p2 @ c @ p2), float(p1 @ c @ p2), float(p1 @ c @ p1)
+    if abs(a) < 1e-300 or a * k - b * b <= 0:
+        return None  # (the line meets the conic in real points: not an ellipse's polar)
+    circular = p1 + complex(-b, np.sqrt(a * k - b * b)) / a * p2
+    # circular . diag(1, 1, f^2) . circular = 0: x^2 + y^2 + f^2 w^2 = 0
+    xy = circular[0] ** 2 + circular[1] ** 2
+    w2 = circular[2] ** 2
+    if abs(w2) < 1e-300:
+        return None
+    f2 = float(-(xy * np.conj(w2)).real / abs(w2) ** 2)
+    if not np.isfinite(f2) or f2 <= 0.0:
+        return None
+    f = float(np.sqrt(f2))
+    normal = np.array([line[0] * f, line[1] * f, line[2]])  # K^T l, K = diag(f, f, 1)
+    ray = np.array([o[0] / o[2], o[1] / o[2], f])
+    cos_tilt = abs(float(normal @ ray)) / (np.linalg.norm(normal) * np.linalg.norm(ray))
+    return float(np.degrees(np.arccos(min(cos_tilt, 1.0)))), f
 
 
 def harmonic_conjugate(a: ArrayLike, b: ArrayLike, o: ArrayLike) -> NDArray:

@@ -1,8 +1,10 @@
 import numpy as np
 import pytest
 from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
 
 from calibration.detection.conics import (
+    circle_tilt_deg,
     conic_from_coefficients,
     conic_ray_distances,
     fit_conic,
@@ -203,3 +205,56 @@ def test_conic_ray_distances_meet_the_conic_and_are_numpys_to_the_bit():
         d[rng.random(len(d)) < 0.1] = 0.0  # (a zero direction: 0 / 0)
         got = conic_ray_distances(conic, c, d)
         np.testing.assert_array_equal(got, _ray_distances_reference(conic, c, d))
+
+
+def _tilted_circle(
+    rng: np.random.Generator, tilt_deg: float, principal_px: np.ndarray, size=(640, 480)
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """A 40 mm circle 500 mm away whose plane is tilted ``tilt_deg`` from the line of sight
+    through its centre, seen anywhere in the image of a camera of 0.9-2.2 widths' focal
+    length: its image conic, the image of its centre and the focal length."""
+    w, h = size
+    f = rng.uniform(0.9, 2.2) * w
+    K = np.array([[f, 0, principal_px[0]], [0, f, principal_px[1]], [0, 0, 1.0]])
+    ray = np.linalg.solve(K, [rng.uniform(0, w), rng.uniform(0, h), 1.0])
+    ray /= np.linalg.norm(ray)
+    axis = rng.uniform(0, 2 * np.pi)
+    tilt = Rotation.from_rotvec(np.radians(tilt_deg) * np.array([np.cos(axis), np.sin(axis), 0]))
+    turn = np.cross([0.0, 0.0, 1.0], ray)
+    to_ray = Rotation.from_rotvec(turn / np.linalg.norm(turn) * np.arcsin(np.linalg.norm(turn)))
+    R = (to_ray * tilt * Rotation.from_euler("x", 180, degrees=True)).as_matrix()
+    H = K @ np.column_stack([R[:, 0], R[:, 1], 500.0 * ray])
+    Hi = np.linalg.inv(H)
+    o = H @ [0.0, 0.0, 1.0]
+    return Hi.T @ np.diag([1.0, 1.0, -1600.0]) @ Hi, o[:2] / o[2], f
+
+
+def test_a_circles_tilt_from_its_line_of_sight_is_read_off_its_image():
+    # Exact with the principal point known, anywhere in the image (the image plane's own
+    # obliquity off the axis flattens the image further: the flatness alone does not tell)
+    rng = np.random.default_rng(31)
+    centre = np.array([319.5, 239.5])
+    flatter = 0
+    for _ in range(50):
+        tilt = rng.uniform(5.0, 70.0)
+        conic, o, f = _tilted_circle(rng, tilt, centre)
+        got = circle_tilt_deg(conic, o, centre)
+        assert got is not None
+        assert abs(got[0] - tilt) < 1e-6
+        assert abs(got[1] - f) < 1e-6 * f
+        eig = np.abs(np.linalg.eigvalsh(conic[:2, :2]))
+        flatter += np.sqrt(eig.min() / eig.max()) < np.cos(np.radians(tilt)) - 0.01
+    assert flatter > 5  # (views the flatness alone calls more oblique than they are)
+    # with the principal point 2 % of the width off, within a degree
+    for _ in range(50):
+        conic, o, _ = _tilted_circle(rng, 60.0, centre + rng.uniform(-12.8, 12.8, 2))
+        got = circle_tilt_deg(conic, o, centre)
+        assert got is not None
+        assert abs(got[0] - 60.0) < 1.0
+
+
+def test_a_frontal_circles_tilt_is_not_made_up():
+    # Seen straight on the vanishing line is at infinity: no focal length, no tilt.
+    conic = np.diag([1.0, 1.0, -400.0])
+    shift = np.array([[1.0, 0, -300.0], [0, 1.0, -200.0], [0, 0, 1.0]])
+    assert circle_tilt_deg(shift.T @ conic @ shift, (300.0, 200.0), (319.5, 239.5)) is None

@@ -1,5 +1,7 @@
 """Detection over the randomised domain of :mod:`scanner.virtual_cell.randomised`."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy import ndimage
@@ -355,6 +357,42 @@ def test_where_windows_of_the_kept_rings_spacing_agree_the_first_measurement_sta
     monkeypatch.setattr(concentric_fine, "RESIZE_SPACING", np.inf)
     alone = detect_target(v.image, v.spec)
     np.testing.assert_array_equal(obs.points_px, alone.points_px)
+
+
+def _steep_off_axis_view(axis_deg: float, tilt_deg: float) -> RenderedView:
+    """The paper's target through a wide lens (f = 0.9 widths, the randomised domain's
+    shortest) ``tilt_deg`` from its line of sight, near the top left corner."""
+    c = replace(
+        paper_dark_surroundings(),
+        focal_px=930.0,
+        distance_mm=300.0,
+        tilt_deg=tilt_deg,
+        tilt_axis_deg=axis_deg,
+        centre_px=(190.0, 190.0),
+    )
+    return render_view(c, np.random.default_rng(0))
+
+
+@pytest.mark.parametrize("axis_deg", [30.0, 210.0])
+def test_a_steep_target_off_the_axis_is_judged_by_its_tilt_not_its_flatness(axis_deg: float):
+    # 64.5 deg from the line of sight: the image plane's own obliquity near the corner
+    # flattens the rings to 0.40, as a target 66.4 deg off on the axis would be; such views
+    # were refused as too oblique.
+    v = _steep_off_axis_view(axis_deg, 64.5)
+    assert v.detectable
+    obs = detect_target(v.image, v.spec)
+    assert obs, obs.reason
+    centre, worst = _errors(v, obs)
+    assert centre < 0.1
+    assert worst < 0.5
+
+
+def test_a_target_steeper_than_the_limit_is_refused_with_its_tilt():
+    v = _steep_off_axis_view(30.0, 69.0)
+    obs = detect_target(v.image, v.spec)
+    assert not obs
+    tilt = float(obs.reason.split("tilted ")[1].split(" deg")[0])
+    assert abs(tilt - 69.0) < 1.5
 
 
 def test_fast_randomised_slice_never_mislabels():
