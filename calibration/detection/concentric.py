@@ -40,10 +40,12 @@ refused the view, so that a view the first pass measures is never exposed to the
 checks. A last sweep, where every pass refused the view, measures the rings that two
 measured ones predict (:mod:`calibration.detection.concentric_missing`), judges the
 candidate centres by bundles of rays and names the crossings again around the other passes'
-centres; it accepts a view only with its orientation marker.
+centres, and last around the centres the printed lines' edges vote for; it accepts a view
+only with its orientation marker.
 
 Steps 1-3 are in :mod:`calibration.detection.concentric_rays` (the candidate centres in
-:mod:`calibration.detection.concentric_centre`), 4-5 in
+:mod:`calibration.detection.concentric_centre`, the edges' votes in
+:mod:`calibration.detection.concentric_votes`), 4-5 in
 :mod:`calibration.detection.concentric_rings` (the diameters in
 :mod:`calibration.detection.concentric_axes`, the checks of the rings along the rays and of
 the diameters' conjugacy in :mod:`calibration.detection.concentric_fine`, the last pass's
@@ -69,6 +71,7 @@ from calibration.detection.concentric_centre import (
     _best_centre,
     _Centre,
     _climbed_centre,
+    _voted_centre,
 )
 from calibration.detection.concentric_fine import (
     AGREED_RAY_DEPARTURE,
@@ -172,6 +175,11 @@ class _Pass:
     bundle_fallback: bool = False
     """Where the pass has no candidate centre, the one bundles of rays at
     :data:`BUNDLE_Z_LINE` find rings around is taken: the last regular pass."""
+    voted: bool = False
+    """The candidate centre is the peak of the printed lines' edges' votes whose rays find
+    the most rings (:func:`_voted_centre`): a small target among clutter whose diameters
+    make no crossing of the Hough lines at O (randomised views 1:104, 2:54, 18:66, 22:81).
+    The last sweep's last pass."""
     bundle_centre: bool = False
     """The candidate centre is the crossing around which bundles of rays at
     :data:`BUNDLE_Z_LINE` find the most rings, and its rays are bundles too: a faint target
@@ -194,10 +202,13 @@ class _ScaleState:
     """The darkness threshold's floor (:func:`_threshold_map`), set by the first scale."""
     now: _Pass = field(default_factory=lambda: _Pass())
     """The pass being run."""
-    centres: dict[tuple[int, bool, bool, bool, bool], _Centre | None] = field(default_factory=dict)
+    centres: dict[tuple[int, bool, bool, bool, bool, bool], _Centre | None] = field(
+        default_factory=dict
+    )
     """The candidate centre each scale (closing kernel, px; rays from ring 1 or not; climbed
-    or not; from the wide lines or not; judged by bundles of rays or not) chose, None for
-    none: the same in every pass that labels the candidates' rays alike."""
+    or not; from the wide lines or not; judged by bundles of rays or not; voted by the
+    edges or not) chose, None for none: the same in every pass that labels the candidates'
+    rays alike."""
     coarse: dict[int, _CoarseMaps] = field(default_factory=dict)
     """The coarse maps of each scale (closing kernel, px) the first pass made: the later
     passes label other rays on the same maps."""
@@ -236,7 +247,12 @@ REGULAR_PASSES = (
 #: with O (1:64); small targets in a corner among clutter whose diameters rank after the
 #: first Hough lines, where some rays name a ring one off (11:73, 20:3) or start at ring 1
 #: too (14:89); a steep target whose centre the rays from ring 1 climb to (1:38); a faint
-#: steep target under a stripe (16:59).
+#: steep target under a stripe (16:59). Last, the peaks of the votes the printed lines'
+#: edges cast (:mod:`calibration.detection.concentric_votes`), for targets with no crossing
+#: of Hough lines at O: a faint one whose second diameter gives no line (2:54), a small one
+#: among clutter whose diameters rank after the 78th line (1:104, its crossings named
+#: again), a small one cut by the border whose innermost ring merges with O (22:81, its rays
+#: from ring 1 named again).
 SWEEP_PASSES = (
     _Pass(bundle_z_line=BUNDLE_Z_LINE, bundle_centre=True, note="centre judged by bundles of rays"),
     _Pass(relabel=True, ring0_hidden=True, note="rays from ring 1 named again"),
@@ -249,6 +265,14 @@ SWEEP_PASSES = (
         note="weaker Hough lines' rays from ring 1 named again",
     ),
     _Pass(relabel=True, climb=True, ring0_hidden=True, note="climbed rays from ring 1 named again"),
+    _Pass(voted=True, note="centre voted by the rings' edges"),
+    _Pass(voted=True, relabel=True, note="voted centre's crossings named again"),
+    _Pass(
+        voted=True,
+        relabel=True,
+        ring0_hidden=True,
+        note="voted centre's rays from ring 1 named again",
+    ),
 )
 
 
@@ -324,7 +348,9 @@ def detect_concentric(
     # scales that stopped so; and where single rays find more rings in order around a
     # crossing of clutter than around a faint target's O, the centre is judged by bundles;
     # and where rays around another pass's centre named sectors a ring off, the crossings are
-    # named again there. The sweep accepts a view only with its orientation marker found.
+    # named again there; and where no crossing of Hough lines is at O, the centre is where
+    # the printed lines' edges vote for. The sweep accepts a view only with its orientation
+    # marker found.
     refused, furthest = None, -1
     for sweep in (False, True):
         # (the sweep's passes depend on which regular ones stopped at two rings)
@@ -472,8 +498,12 @@ def _detect_with_kernel(
 
     state.progress = 1
     # The candidates' rays are labelled alike in every pass with the same ``ring0_hidden``.
-    key = (kernel, state.now.ring0_hidden, False, state.now.wide, False)
-    if key not in state.centres:
+    key = (kernel, state.now.ring0_hidden, False, state.now.wide, False, False)
+    if state.now.voted:
+        key = (kernel, state.now.ring0_hidden, False, False, False, True)
+        if key not in state.centres:
+            state.centres[key] = _voted_centre(z_rays, radii, state.now.ring0_hidden)
+    elif key not in state.centres:
         first_new = HOUGH_LINES if state.now.wide else 0
         state.centres[key] = _best_centre(
             z_rays, lines, radii, size, state.now.ring0_hidden, first_new
@@ -482,13 +512,14 @@ def _detect_with_kernel(
     if state.now.bundle_centre or (state.now.bundle_fallback and state.centres[key] is None):
         # Rings too faint for single rays around every crossing (their own density raises
         # the local threshold: view 16:11): the crossings judged by bundles of rays.
-        key, bundled = (kernel, False, False, False, True), BUNDLE_Z_LINE
+        key, bundled = (kernel, False, False, False, True, False), BUNDLE_Z_LINE
         if key not in state.centres:
             state.centres[key] = _best_centre(
                 z_rays, lines, radii, size, False, 0, BUNDLE_Z_LINE, BUNDLE_STEP_PX
             )
     if state.now.climb:
-        start, key = state.centres[key], (kernel, state.now.ring0_hidden, True, False, False)
+        start = state.centres[key]
+        key = (kernel, state.now.ring0_hidden, True, False, False, state.now.voted)
         if key not in state.centres:
             state.centres[key] = (
                 None

@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calibration.detection.concentric_rays import _line_from_hough, _ray_support
+from calibration.detection.concentric_votes import axes_through, voted_centres
 from calibration.detection.conics import intersect_lines
 
 #: The coarse stage's maps hold the darkness over its local noise threshold: a printed line
@@ -154,3 +155,34 @@ def _climbed_centre(
         else:
             step /= 2.0
     return c, pair, axis_angles
+
+
+def _voted_centre(z_rays: NDArray, radii: NDArray, ring0_hidden: bool) -> _Centre | None:
+    """The candidate image of O among the peaks of the edges' votes
+    (:func:`~calibration.detection.concentric_votes.voted_centres`) whose rays find the most
+    rings in order; None where none has rings around it (a support of at least 12, as
+    :func:`_best_centre` asks).
+
+    Its diameters' directions are the darkest lines through it out to the smallest target's
+    radius the detector is specified for (7.5 % of the shorter side), its lines the lines
+    through it along them.
+    """
+    h, w = z_rays.shape
+    reach = max(8.0, 0.075 * min(h, w))
+    best = None
+    for c in voted_centres(z_rays):
+        axis_angles = axes_through(z_rays, c, reach)
+        quick = _ray_support(z_rays, c, radii, Z_LINE, axis_angles, 24, ring0_hidden)
+        if quick < 2 or (best is not None and 4 * quick < 0.5 * best[0]):
+            continue
+        good = _ray_support(z_rays, c, radii, Z_LINE, axis_angles, ring0_hidden=ring0_hidden)
+        if best is None or good > best[0]:
+            best = (good, c, axis_angles)
+    if best is None or best[0] < 12:
+        return None
+    _, c, axis_angles = best
+    lines = tuple(
+        np.array([-np.sin(a), np.cos(a), np.sin(a) * c[0] - np.cos(a) * c[1]])
+        for a in axis_angles[::2]
+    )
+    return c, lines, axis_angles

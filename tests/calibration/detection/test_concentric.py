@@ -158,12 +158,14 @@ def test_of_several_scales_the_refusal_that_got_furthest_is_reported(monkeypatch
                    (2, "sixth"), (5, "sixth, as far"), (1, "seventh"),
                    (5, "seventh, as far"), (3, "eighth"), (5, "eighth, as far"),
                    (1, "last sweep"), (5, "last sweep, as far")]
-                  + [(1, "last sweep, later")] * 10)  # fmt: skip
+                  + [(1, "last sweep, later")] * 16)  # fmt: skip
     passes = []
 
     def fake(img, target, s, kernel, size, state):
         p = state.now
-        passes.append((p.ring0_hidden, p.joint, p.bundle_z_line, p.climb, p.wide, p.relabel))
+        passes.append(
+            (p.ring0_hidden, p.joint, p.bundle_z_line, p.climb, p.wide, p.relabel, p.voted)
+        )
         state.progress, reason = next(stages)
         return TargetObservation.failed(reason, size, "concentric_circles")
 
@@ -172,49 +174,53 @@ def test_of_several_scales_the_refusal_that_got_furthest_is_reported(monkeypatch
     assert not obs
     assert obs.reason == "diameter line not printed"
     single = [
-        (False, False, 0.0, False, False, False),
-        (True, False, 0.0, False, False, False),
-        (False, True, 0.0, False, False, False),
+        (False, False, 0.0, False, False, False, False),
+        (True, False, 0.0, False, False, False, False),
+        (False, True, 0.0, False, False, False, False),
     ]
     bundles = [
-        (False, False, Z_LINE, False, False, False),
-        (False, False, concentric.BUNDLE_Z_LINE, False, False, False),
+        (False, False, Z_LINE, False, False, False, False),
+        (False, False, concentric.BUNDLE_Z_LINE, False, False, False, False),
     ]
     climbed, wide = (
-        [(False, False, 0.0, True, False, False)],
-        [(False, False, 0.0, False, True, False)],
+        [(False, False, 0.0, True, False, False, False)],
+        [(False, False, 0.0, False, True, False, False)],
     )
-    named_again = [(False, False, 0.0, False, False, True)]
+    named_again = [(False, False, 0.0, False, False, True, False)]
     # (the last sweep: no pass stopped at two rings, so the bundle-judged centres, then the
-    # crossings named again around the other passes' centres)
+    # crossings named again around the other passes' centres, then the edges' voted centres:
+    # as they are, their crossings named again, their rays from ring 1 named again)
     last = [
-        (False, False, concentric.BUNDLE_Z_LINE, False, False, False),
-        (True, False, 0.0, False, False, True),
-        (False, False, 0.0, False, True, True),
-        (False, False, 0.0, False, False, True),  # (around the bundle-judged centres)
-        (True, False, 0.0, False, True, True),
-        (True, False, 0.0, True, False, True),
+        (False, False, concentric.BUNDLE_Z_LINE, False, False, False, False),
+        (True, False, 0.0, False, False, True, False),
+        (False, False, 0.0, False, True, True, False),
+        (False, False, 0.0, False, False, True, False),  # (around the bundle-judged centres)
+        (True, False, 0.0, False, True, True, False),
+        (True, False, 0.0, True, False, True, False),
+        (False, False, 0.0, False, False, False, True),
+        (False, False, 0.0, False, False, True, True),
+        (True, False, 0.0, False, False, True, True),
     ]
     regular = single + bundles + climbed + wide + named_again
     assert passes == [p for p in regular + last for _ in range(2)]
     # a reason of a later pass that got further says where it comes from
     firsts = [(1, "first"), (2, "first, too")]
-    stages = iter(firsts + [(3, "second"), (6, "marker not found")] + [(1, "later")] * 24)
+    stages = iter(firsts + [(3, "second"), (6, "marker not found")] + [(1, "later")] * 30)
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert obs.reason == "marker not found (rays labelled from ring 1)"
-    stages = iter(firsts + [(2, "second"), (1, "second, too"), (4, "too oblique")] + [(1, "")] * 23)
+    stages = iter(firsts + [(2, "second"), (1, "second, too"), (4, "too oblique")] + [(1, "")] * 29)
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert obs.reason == "too oblique (rings fitted together)"
-    stages = iter(firsts + [(1, "later")] * 7 + [(3, "1 rings measured")] + [(1, "")] * 18)
+    stages = iter(firsts + [(1, "later")] * 7 + [(3, "1 rings measured")] + [(1, "")] * 24)
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert obs.reason == "1 rings measured (rays in bundles)"
-    stages = iter(firsts + [(1, "later")] * 9 + [(4, "2 rings measured")] + [(1, "")] * 16)
+    stages = iter(firsts + [(1, "later")] * 9 + [(4, "2 rings measured")] + [(1, "")] * 22)
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert obs.reason == "2 rings measured (centre moved to the most rings)"
-    stages = iter(firsts + [(1, "later")] * 11 + [(3, "1 rings measured")] + [(1, "")] * 14)
+    stages = iter(firsts + [(1, "later")] * 11 + [(3, "1 rings measured")] + [(1, "")] * 20)
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert obs.reason == "1 rings measured (weaker Hough lines tried)"
-    stages = iter(firsts + [(1, "later")] * 13 + [(3, "0 rings measured")] + [(1, "")] * 12)
+    stages = iter(firsts + [(1, "later")] * 13 + [(3, "0 rings measured")] + [(1, "")] * 18)
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert obs.reason == "0 rings measured (crossings named again)"
 
@@ -241,11 +247,11 @@ def test_the_last_sweep_repeats_two_ring_passes_and_wants_the_marker(monkeypatch
     obs = detect_concentric(np.full((400, 400), 0.5), demo_target())
     assert not obs
     assert "last sweep without its orientation marker" in obs.reason
-    assert [c[2] for c in calls] == [False] * 16 + [True] * 13
+    assert [c[2] for c in calls] == [False] * 16 + [True] * 19
     assert calls[4][:3] == (True, False, False)  # the third pass's first scale
     assert calls[16] == (True, False, True, "missing rings measured from two", calls[4][4])
     # (the bundle-judged centres, and their crossings named again, refused without the marker)
-    assert [c[1] for c in calls[17:]] == [True, True] + [False] * 4 + [True, True] + [False] * 4
+    assert [c[1] for c in calls[17:]] == [True, True] + [False] * 4 + [True, True] + [False] * 10
     assert calls[17][3] == "centre judged by bundles of rays"
     calls.clear()
     monkeypatch.setattr(concentric, "_detect_with_kernel", lambda *a: fake(*a, found="unique"))
