@@ -98,6 +98,7 @@ from calibration.detection.concentric_rings import (
     _relabel_by_ratios,
     concentric_affine_conics,
 )
+from calibration.detection.concentric_votes import voted_centres
 from calibration.detection.conics import (
     fit_conic,
     sampson_distances,
@@ -212,6 +213,9 @@ class _ScaleState:
     coarse: dict[int, _CoarseMaps] = field(default_factory=dict)
     """The coarse maps of each scale (closing kernel, px) the first pass made: the later
     passes label other rays on the same maps."""
+    votes: dict[int, NDArray] = field(default_factory=dict)
+    """The peaks of the printed lines' edges' votes at each scale (closing kernel, px), for
+    every voted pass (:func:`~calibration.detection.concentric_votes.voted_centres`)."""
     bright: BrightMasks | None = None
     """The image's bright masks, each made once for every scale and pass (set with the
     image)."""
@@ -502,7 +506,11 @@ def _detect_with_kernel(
     if state.now.voted:
         key = (kernel, state.now.ring0_hidden, False, False, False, True)
         if key not in state.centres:
-            state.centres[key] = _voted_centre(z_rays, radii, state.now.ring0_hidden)
+            if kernel not in state.votes:
+                state.votes[kernel] = voted_centres(z_rays)
+            state.centres[key] = _voted_centre(
+                z_rays, state.votes[kernel], radii, state.now.ring0_hidden
+            )
     elif key not in state.centres:
         first_new = HOUGH_LINES if state.now.wide else 0
         state.centres[key] = _best_centre(

@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calibration.detection.concentric_rays import _line_from_hough, _ray_support
-from calibration.detection.concentric_votes import axes_through, voted_centres
+from calibration.detection.concentric_votes import axes_through
 from calibration.detection.conics import intersect_lines
 
 #: The coarse stage's maps hold the darkness over its local noise threshold: a printed line
@@ -157,8 +157,10 @@ def _climbed_centre(
     return c, pair, axis_angles
 
 
-def _voted_centre(z_rays: NDArray, radii: NDArray, ring0_hidden: bool) -> _Centre | None:
-    """The candidate image of O among the peaks of the edges' votes
+def _voted_centre(
+    z_rays: NDArray, peaks: NDArray, radii: NDArray, ring0_hidden: bool
+) -> _Centre | None:
+    """The candidate image of O among the peaks ``(M, 2)`` of the edges' votes
     (:func:`~calibration.detection.concentric_votes.voted_centres`) whose rays find the most
     rings in order; None where none has rings around it (a support of at least 12, as
     :func:`_best_centre` asks).
@@ -170,7 +172,7 @@ def _voted_centre(z_rays: NDArray, radii: NDArray, ring0_hidden: bool) -> _Centr
     h, w = z_rays.shape
     reach = max(8.0, 0.075 * min(h, w))
     best = None
-    for c in voted_centres(z_rays):
+    for c in peaks:
         axis_angles = axes_through(z_rays, c, reach)
         quick = _ray_support(z_rays, c, radii, Z_LINE, axis_angles, 24, ring0_hidden)
         if quick < 2 or (best is not None and 4 * quick < 0.5 * best[0]):
