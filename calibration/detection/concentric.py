@@ -180,7 +180,7 @@ class _Pass:
     """The candidate centre is the peak of the printed lines' edges' votes whose rays find
     the most rings (:func:`_voted_centre`): a small target among clutter whose diameters
     make no crossing of the Hough lines at O (randomised views 1:104, 2:54, 18:66, 22:81).
-    The last sweep's last pass."""
+    The last sweep's last three passes."""
     bundle_centre: bool = False
     """The candidate centre is the crossing around which bundles of rays at
     :data:`BUNDLE_Z_LINE` find the most rings, and its rays are bundles too: a faint target
@@ -493,7 +493,7 @@ def _detect_with_kernel(
     if kernel not in state.coarse:
         state.coarse[kernel], d, bg = _coarse_maps(img, kernel, state)
     z_rays, lines = state.coarse[kernel].z_rays, state.coarse[kernel].lines
-    if len(lines) < 2:
+    if len(lines) < 2 and not state.now.voted:  # (the edges' votes need no lines)
         return TargetObservation.failed("no pair of diameter lines found", size, KIND)
     if state.now.wide:
         lines = _distinct_lines(state.coarse[kernel].hough, size, WIDE_HOUGH_LINES)

@@ -27,9 +27,6 @@ from calibration.detection.conics import fit_line
 
 __all__ = ["Refit", "conjugacy_deg", "conjugate_diameter"]
 
-#: A refit of the two diameters (:func:`_refine_axes` with the rest of its arguments bound):
-#: from the lines and the index of one hidden under a stripe, the refitted lines and their
-#: points, or ``None``.
 #: Least share of a diameter's samples between the rings that are dark (over the noise
 #: threshold) for the angular scan (:func:`_diameter_lines`) to take its direction.
 MIN_DARK_SHARE = 0.3
@@ -43,6 +40,9 @@ CONJUGATE_DARK_SHARE = 0.15
 #: rings' conjugate is within 1.7 deg of the print on right views (MAX_CONJUGACY_DEG's data).
 CONJUGATE_WINDOW_DEG = 3.0
 
+#: A refit of the two diameters (:func:`_refine_axes` with the rest of its arguments bound):
+#: from the lines and the index of one hidden under a stripe, the refitted lines and their
+#: points, or ``None``.
 Refit = Callable[[list[NDArray], int | None], tuple[list[NDArray], list[NDArray]] | None]
 
 
@@ -56,12 +56,14 @@ def _diameter_lines(
     the mean darkness ``z`` (in units of its noise threshold; negative where the print is
     hidden, which is left out) on the paper between the rings, inside the largest ring; the
     diameters are the two darkest directions at least 12 deg apart, each dark (over the
-    threshold) on at least 30 % of its samples (two
-    perpendicular diameters stay over 45 deg apart in the image up to a 65 deg tilt). The
-    Hough lines that gave the candidate centre may be a laser stripe's edge or clutter
-    through it; these are the print's. None when fewer than two directions are dark on
-    30 % of their samples and on 3 times the median direction's share. At least 360
-    directions are scanned; samples run to the outer ring or the image's farthest corner.
+    threshold) on at least :data:`MIN_DARK_SHARE` of its samples and on 3 times the median
+    direction's share (two perpendicular diameters stay over 45 deg apart in the image up to
+    a 65 deg tilt). Where no second direction is that dark, the darkest within
+    :data:`CONJUGATE_WINDOW_DEG` of the first one's conjugate (:func:`conjugate_diameter`)
+    will do with :data:`CONJUGATE_DARK_SHARE`. The Hough lines that gave the candidate
+    centre may be a laser stripe's edge or clutter through it; these are the print's. None
+    when no two directions pass. At least 360 directions are scanned; samples run to the
+    outer ring or the image's farthest corner.
 
     A laser stripe along a diameter hides it whole (the paper's set-up puts the stripe on
     A-O-B): where only one direction is dark, the other diameter is its conjugate
@@ -141,7 +143,7 @@ def _diameter_lines(
                 CONJUGATE_WINDOW_DEG
             )
             i = int(np.argmax(np.where(near & ~taken, strength, -1.0)))
-            if not near[i] or dark[i] < CONJUGATE_DARK_SHARE or dark[i] < common:
+            if not (near & ~taken)[i] or dark[i] < CONJUGATE_DARK_SHARE or dark[i] < common:
                 return None
         a, b0, cc = strength[i - 1], strength[i], strength[(i + 1) % n_ang]
         curv = a - 2 * b0 + cc

@@ -83,6 +83,15 @@ MAX_CONJUGACY_DEG = 5.0
 #: off the print (a view of contrast over noise 2.5, below the domain's 3).
 MIN_CONJUGATE_EVIDENCE = 0.8
 
+#: Rings flatter than the cosine of this much less than the detector's tilt limit have the
+#: tilt read off them (:func:`~calibration.detection.conics.circle_tilt_deg`), which alone
+#: then decides: off the image's centre the image plane's obliquity makes a steep target's
+#: rings flatter or rounder by up to the cosine of the ray's angle (0.87 at 30 deg, a lens of
+#: 0.9 widths' focal length in a corner), and a target 70 deg off there looks 0.40 flat, as
+#: one 66 deg off on the axis. Nearer frontal the circular points run off to infinity and
+#: the focal length they give, and so the tilt, is ill-determined: the flatness decides.
+TILT_READ_MARGIN_DEG = 15.0
+
 
 #: Largest departure of a ring's crossing with a ray from O from where the spec's radii put
 #: it along that ray (:func:`ray_departure`), in ring gaps, for the measured rings to be
@@ -580,19 +589,21 @@ def _measure(
 
     reached(4)
     ratio = min(_conic_axes_ratio(cn) for cn in conics.values())
-    if ratio < np.cos(np.radians(s.max_tilt_deg)):
-        # Off the image's centre the image plane flattens the rings by the ray's own
-        # obliquity too: judged by the tilt from the line of sight that the outer ring gives
-        # (principal point assumed at the image's centre; a 5 % error moves it by up to 2 deg).
+    limit = np.cos(np.radians(s.max_tilt_deg))
+    tilt = None
+    if ratio < np.cos(np.radians(s.max_tilt_deg - TILT_READ_MARGIN_DEG)):
+        # Off the image's centre the image plane foreshortens the rings by the ray's own
+        # obliquity too, flatter or rounder: judged by the tilt from the line of sight that
+        # the outer ring gives (the principal point assumed at the image's centre).
         tilt = circle_tilt_deg(conics[max(conics)], c, ((w - 1) / 2, (h - 1) / 2))
-        if tilt is None or tilt[0] > s.max_tilt_deg:
-            seen = "" if tilt is None else f", tilted {tilt[0]:.1f} deg from the line of sight"
-            return TargetObservation.failed(
-                f"too oblique: ring images flattened to {ratio:.2f}{seen}, expected "
-                f">= {np.cos(np.radians(s.max_tilt_deg)):.2f} (tilt <= {s.max_tilt_deg} deg)",
-                size,
-                KIND,
-            )
+    if (tilt is None and ratio < limit) or (tilt is not None and tilt[0] > s.max_tilt_deg):
+        seen = "" if tilt is None else f", tilted {tilt[0]:.1f} deg from the line of sight"
+        return TargetObservation.failed(
+            f"too oblique: ring images flattened to {ratio:.2f}{seen}, expected "
+            f"tilt <= {s.max_tilt_deg} deg (flattened to >= {limit:.2f})",
+            size,
+            KIND,
+        )
 
     reached(5)
     # -- centre O: intersection of the diameter lines, checked against the pencil centre

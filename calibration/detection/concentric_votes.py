@@ -6,11 +6,12 @@ have no such crossing at O: its diameters rank far down the Hough lines (randomi
 1:104, 86 px across in a 640x480 view, ranks 78 and up) or one of them gives no line at all
 (2:54, 18:66). But each ring's edges face O: along the darkness's gradient from every edge
 pixel, votes cast on both sides meet there, from every ring at once (a Hough transform of
-the centres of concentric circles). A tilt spreads an ellipse's votes over its evolute, a
-region about O some ``(1 - cos^2 t) r`` across, so the votes are smoothed before their peaks
-are taken; the rays from each peak then judge it as they judge a crossing of lines
-(:func:`~calibration.detection.concentric_rays._ray_support`), and the chosen peak is moved
-to where they find the most rings (:func:`~calibration.detection.concentric_centre._climbed_centre`).
+the centres of concentric circles). A tilt ``t`` spreads an ellipse's votes over its
+evolute, about ``r sin^2 t`` either way along its major axis and ``r sin^2 t / cos t`` along
+its minor one, so the votes are smoothed before their peaks are taken, and the peaks are
+only near O on a moderate tilt (at 40 deg within about 6 px for rings of 90 px); the rays
+from each peak then judge it as they judge a crossing of lines
+(:func:`~calibration.detection.concentric_centre._voted_centre`).
 
 Clutter's circles collect votes too: a peak is only a candidate, refused or kept by the
 pencil's radius ratios, the fine stage and, in the last sweep, the orientation marker.
@@ -24,7 +25,7 @@ from numpy.typing import NDArray
 
 from scanner.core.jit import njit
 
-__all__ = ["VOTED_PEAKS", "axes_through", "voted_centres"]
+__all__ = ["VOTED_PEAKS", "axes_through", "full_image_px", "voted_centres"]
 
 #: Vote peaks each scale's rays judge, strongest first. On the randomised benchmark's views
 #: that only these candidates reach (1:104, 2:54, 18:66, 22:81) O was among the first five,
@@ -53,8 +54,8 @@ def _cast_votes(gx, gy, mag, threshold, reach, votes):  # pragma: no cover - com
             dy = gy[y, x] / m
             for side in (-1.0, 1.0):
                 for r in range(2, reach):
-                    u = int(x + side * r * dx + 0.5)
-                    v = int(y + side * r * dy + 0.5)
+                    u = int(np.floor(x + side * r * dx + 0.5))
+                    v = int(np.floor(y + side * r * dy + 0.5))
                     if u < 0 or v < 0 or u >= w or v >= h:
                         break
                     votes[v, u] += 1.0
@@ -96,8 +97,18 @@ def voted_centres(z: NDArray, n: int = VOTED_PEAKS) -> NDArray:
     local_max = smooth >= cv2.dilate(smooth, np.ones((9, 9), np.uint8))
     ys, xs = np.nonzero(local_max & (smooth > 0))
     order = np.argsort(-smooth[ys, xs], kind="stable")[:n]
-    # (the centre of a reduced pixel, in the full image's pixels)
-    return np.column_stack([xs[order], ys[order]]).astype(np.float64) * factor + (factor - 1) / 2
+    peaks = np.column_stack([xs[order], ys[order]]).astype(np.float64)
+    return full_image_px(peaks, (dark.shape[1], dark.shape[0]), (w, h))
+
+
+def full_image_px(
+    points_px: NDArray, reduced_size: tuple[int, int], full_size: tuple[int, int]
+) -> NDArray:
+    """Pixel positions ``(N, 2)`` on a map resized from ``full_size`` to ``reduced_size``
+    (width, height: OpenCV's resize scales each axis by its own ratio, pixel centres onto
+    pixel centres) in the full map's pixels."""
+    scale = np.asarray(full_size, dtype=np.float64) / np.asarray(reduced_size, dtype=np.float64)
+    return (np.asarray(points_px, dtype=np.float64) + 0.5) * scale - 0.5
 
 
 def axes_through(z: NDArray, c: NDArray, reach_px: float) -> list[float]:

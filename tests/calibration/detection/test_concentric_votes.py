@@ -5,7 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from calibration.detection.concentric_votes import axes_through, voted_centres
+from calibration.detection.concentric_votes import axes_through, full_image_px, voted_centres
 from tests.calibration.synth_concentric import seen_rings
 
 
@@ -60,6 +60,26 @@ def test_a_large_view_votes_on_a_reduced_map_and_keeps_its_pixels():
     peaks = voted_centres(big)
     # (the map's pixel (x, y) is at 2.5 (x, y) + 0.75 of the big one's)
     assert np.linalg.norm(peaks[0] - (2.5 * o + 0.75)) < 8.0
+
+
+def test_reduced_pixels_map_back_to_the_full_maps_pixel_centres():
+    # A size the factor does not divide: OpenCV's resize scales each axis by its own ratio
+    # (5184x3456 to 740x493: 7.005 and 7.010), pixel centres onto pixel centres
+    full, reduced = (5184, 3456), (740, 493)
+    corners = np.array([[-0.5, -0.5], [739.5, 492.5], [0.0, 0.0]])
+    np.testing.assert_allclose(
+        full_image_px(corners, reduced, full),
+        [[-0.5, -0.5], [5183.5, 3455.5], [5184 / 740 / 2 - 0.5, 3456 / 493 / 2 - 0.5]],
+    )
+    # ... as OpenCV maps them: a dot at full-size pixel (4000, 3000) lands on that pixel
+    dot = np.zeros((3456, 5184), np.float32)
+    dot[2996:3005, 3996:4005] = 1.0
+    small = cv2.resize(dot, reduced, interpolation=cv2.INTER_AREA)
+    ys, xs = np.mgrid[: small.shape[0], : small.shape[1]]
+    centroid = np.array([(xs * small).sum(), (ys * small).sum()]) / small.sum()
+    np.testing.assert_allclose(
+        full_image_px(centroid[None], reduced, full)[0], [4000, 3000], atol=0.5
+    )
 
 
 def test_a_map_without_edges_votes_for_nothing():
