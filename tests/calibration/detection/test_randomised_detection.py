@@ -141,6 +141,9 @@ def _detected_view(
         (1, 104, "86 px across among clutter, a stripe: the diameters 78th Hough line on"),
         (2, 54, "faint, 11 thin rings: the second diameter gives no Hough line"),
         (22, 81, "small, cut by the border, ring 0 merged with O: voted, from ring 1"),
+        # seed 27 was first run by the forty-sixth session: a clean frontal view whose
+        # second diameter's refit the stripe through O, 13 deg off, turned onto itself
+        (27, 66, "4 bold rings, a stripe through O: the conjugate diameter held"),
     ],
 )
 def test_views_the_benchmark_missed_are_detected_and_labelled_right(
