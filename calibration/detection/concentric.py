@@ -60,6 +60,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field, replace
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -191,6 +192,24 @@ class _Pass:
     """Added to the reason of a refusal this pass got furthest with."""
 
 
+class _CentreKey(NamedTuple):
+    """Which candidate centre of :attr:`_ScaleState.centres`: passes whose candidates' rays
+    are labelled alike share it."""
+
+    kernel: int
+    """The scale's closing kernel, px."""
+    ring0_hidden: bool
+    """Rays from ring 1."""
+    climbed: bool
+    """Moved to where its rays find the most rings (:func:`_climbed_centre`)."""
+    wide: bool
+    """From the weaker Hough lines' crossings."""
+    bundled: bool
+    """Judged by bundles of rays."""
+    voted: bool
+    """Voted by the printed lines' edges (:func:`_voted_centre`)."""
+
+
 @dataclass
 class _ScaleState:
     """What one closing scale of :func:`detect_concentric` tells the next, and each pass over
@@ -203,13 +222,9 @@ class _ScaleState:
     """The darkness threshold's floor (:func:`_threshold_map`), set by the first scale."""
     now: _Pass = field(default_factory=lambda: _Pass())
     """The pass being run."""
-    centres: dict[tuple[int, bool, bool, bool, bool, bool], _Centre | None] = field(
-        default_factory=dict
-    )
-    """The candidate centre each scale (closing kernel, px; rays from ring 1 or not; climbed
-    or not; from the wide lines or not; judged by bundles of rays or not; voted by the
-    edges or not) chose, None for none: the same in every pass that labels the candidates'
-    rays alike."""
+    centres: dict[_CentreKey, _Centre | None] = field(default_factory=dict)
+    """The candidate centre each scale and kind of candidate chose, None for none: the same
+    in every pass that labels the candidates' rays alike."""
     coarse: dict[int, _CoarseMaps] = field(default_factory=dict)
     """The coarse maps of each scale (closing kernel, px) the first pass made: the later
     passes label other rays on the same maps."""
@@ -502,15 +517,13 @@ def _detect_with_kernel(
 
     state.progress = 1
     # The candidates' rays are labelled alike in every pass with the same ``ring0_hidden``.
-    key = (kernel, state.now.ring0_hidden, False, state.now.wide, False, False)
-    if state.now.voted:
-        key = (kernel, state.now.ring0_hidden, False, False, False, True)
-        if key not in state.centres:
-            if kernel not in state.votes:
-                state.votes[kernel] = voted_centres(z_rays)
-            state.centres[key] = _voted_centre(
-                z_rays, state.votes[kernel], radii, state.now.ring0_hidden
-            )
+    key = _CentreKey(kernel, state.now.ring0_hidden, False, state.now.wide, False, state.now.voted)
+    if key not in state.centres and state.now.voted:
+        if kernel not in state.votes:
+            state.votes[kernel] = voted_centres(z_rays)
+        state.centres[key] = _voted_centre(
+            z_rays, state.votes[kernel], radii, state.now.ring0_hidden
+        )
     elif key not in state.centres:
         first_new = HOUGH_LINES if state.now.wide else 0
         state.centres[key] = _best_centre(
@@ -520,14 +533,14 @@ def _detect_with_kernel(
     if state.now.bundle_centre or (state.now.bundle_fallback and state.centres[key] is None):
         # Rings too faint for single rays around every crossing (their own density raises
         # the local threshold: view 16:11): the crossings judged by bundles of rays.
-        key, bundled = (kernel, False, False, False, True, False), BUNDLE_Z_LINE
+        key, bundled = _CentreKey(kernel, False, False, False, True, False), BUNDLE_Z_LINE
         if key not in state.centres:
             state.centres[key] = _best_centre(
                 z_rays, lines, radii, size, False, 0, BUNDLE_Z_LINE, BUNDLE_STEP_PX
             )
     if state.now.climb:
         start = state.centres[key]
-        key = (kernel, state.now.ring0_hidden, True, False, False, state.now.voted)
+        key = _CentreKey(kernel, state.now.ring0_hidden, True, False, False, state.now.voted)
         if key not in state.centres:
             state.centres[key] = (
                 None

@@ -23,7 +23,7 @@ from calibration.detection.concentric_rings import (
     _perimeter_px,
     _unit_line,
 )
-from calibration.detection.conics import fit_line
+from calibration.detection.conics import fit_line, line_through
 
 __all__ = ["Refit", "conjugacy_deg", "conjugate_diameter"]
 
@@ -149,8 +149,7 @@ def _diameter_lines(
         curv = a - 2 * b0 + cc
         off = 0.5 * (a - cc) / curv if curv < 0 else 0.0
         ang = (i + off) * (np.pi / n_ang)
-        normal = np.array([-np.sin(ang), np.cos(ang)])
-        lines.append(np.array([normal[0], normal[1], -float(normal @ c)]))
+        lines.append(line_through(c, ang))
         near = np.abs((theta - ang + np.pi / 2) % np.pi - np.pi / 2) < np.radians(12)
         taken |= near
     return lines, None

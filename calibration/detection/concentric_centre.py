@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 
 from calibration.detection.concentric_rays import _line_from_hough, _ray_support
 from calibration.detection.concentric_votes import axes_through
-from calibration.detection.conics import intersect_lines
+from calibration.detection.conics import intersect_lines, line_through
 
 #: The coarse stage's maps hold the darkness over its local noise threshold: a printed line
 #: may be where it is over this (the Hough mask and the rays' crossings alike).
@@ -183,8 +183,4 @@ def _voted_centre(
     if best is None or best[0] < 12:
         return None
     _, c, axis_angles = best
-    lines = tuple(
-        np.array([-np.sin(a), np.cos(a), np.sin(a) * c[0] - np.cos(a) * c[1]])
-        for a in axis_angles[::2]
-    )
-    return c, lines, axis_angles
+    return c, (line_through(c, axis_angles[0]), line_through(c, axis_angles[2])), axis_angles

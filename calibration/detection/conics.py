@@ -25,6 +25,7 @@ __all__ = [
     "harmonic_conjugate",
     "intersect_lines",
     "line_conic_intersections",
+    "line_through",
     "pencil_center",
     "pencil_member",
     "sampson_distances",
@@ -117,6 +118,13 @@ def fit_line(points_px: ArrayLike) -> NDArray:
     _, _, vt = np.linalg.svd(p - c, full_matrices=False)
     n = vt[-1]
     return np.array([n[0], n[1], -float(n @ c)])
+
+
+def line_through(point_px: ArrayLike, angle_rad: float) -> NDArray:
+    """The line ``(3,)`` through ``point_px`` ``(2,)`` along the direction ``angle_rad`` (from
+    the image's x axis towards its y axis), homogeneous with ``a^2 + b^2 = 1``."""
+    normal = np.array([-np.sin(angle_rad), np.cos(angle_rad)])
+    return np.array([normal[0], normal[1], -float(normal @ np.asarray(point_px, float))])
 
 
 def intersect_lines(l1: ArrayLike, l2: ArrayLike) -> NDArray:

@@ -12,6 +12,7 @@ from calibration.detection.conics import (
     harmonic_conjugate,
     intersect_lines,
     line_conic_intersections,
+    line_through,
     pencil_center,
     pencil_member,
     sampson_distances,
@@ -258,3 +259,16 @@ def test_a_frontal_circles_tilt_is_not_made_up():
     conic = np.diag([1.0, 1.0, -400.0])
     shift = np.array([[1.0, 0, -300.0], [0, 1.0, -200.0], [0, 0, 1.0]])
     assert circle_tilt_deg(shift.T @ conic @ shift, (300.0, 200.0), (319.5, 239.5)) is None
+
+
+def test_a_line_through_a_point_along_an_angle_holds_the_point_and_runs_along_it():
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        p, a = rng.uniform(-500, 1500, 2), rng.uniform(-np.pi, 2 * np.pi)
+        ln = line_through(p, a)
+        assert abs(np.hypot(ln[0], ln[1]) - 1.0) < 1e-12
+        for t in (0.0, 37.5, -400.0):
+            q = p + t * np.array([np.cos(a), np.sin(a)])
+            assert abs(ln @ [q[0], q[1], 1.0]) < 1e-9
+        off = p + 3.0 * np.array([-np.sin(a), np.cos(a)])  # 3 px across it
+        assert abs(abs(ln @ [off[0], off[1], 1.0]) - 3.0) < 1e-9

@@ -76,7 +76,11 @@ def _detected_view(
     """Benchmark view ``seed:view`` (a detectable one), detected: the view, the observation,
     its centre and worst named-point errors (px)."""
     rng = np.random.default_rng([seed, view, 1])
-    v = render_view(draw_conditions(rng, has_target=True), rng)
+    return _detected(render_view(draw_conditions(rng, has_target=True), rng), what)
+
+
+def _detected(v: RenderedView, what: str) -> tuple[RenderedView, TargetObservation, float, float]:
+    """A detectable rendered view, detected: as :func:`_detected_view` gives it."""
     assert v.detectable
     obs = detect_target(v.image, v.spec)
     assert obs, f"{what}: {obs.reason}"
@@ -387,11 +391,7 @@ def test_a_steep_target_off_the_axis_is_judged_by_its_tilt_not_its_flatness(axis
     # 64.5 deg from the line of sight: the image plane's own obliquity near the corner
     # flattens the rings to 0.40, as a target 66.4 deg off on the axis would be; such views
     # were refused as too oblique.
-    v = _steep_off_axis_view(axis_deg, 64.5)
-    assert v.detectable
-    obs = detect_target(v.image, v.spec)
-    assert obs, obs.reason
-    centre, worst = _errors(v, obs)
+    _, _, centre, worst = _detected(_steep_off_axis_view(axis_deg, 64.5), "64.5 deg off axis")
     assert centre < 0.1
     assert worst < 0.5
 
