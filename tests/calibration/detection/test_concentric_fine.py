@@ -96,6 +96,40 @@ def test_one_ring_off_the_radii_is_dropped_and_the_rest_kept() -> None:
     assert np.nanmax(ray_departure(conics_kept, np.array(RADII_MM), o)) <= AGREED_RAY_DEPARTURE
 
 
+def test_two_rings_off_the_radii_are_dropped_and_a_third_refuses_the_view() -> None:
+    # A laser stripe tangent to the innermost ring pulls it and the next one off their lines
+    # (randomised view 21:50): both go, the rest are kept. Three such rings are more than
+    # a stripe explains.
+    rng = np.random.default_rng(12)
+    Hinv, conics, o = seen_rings(rng, RADII_MM)
+    radii = np.array(RADII_MM)
+    rings = _rings(conics)
+    for k in (1, 2):
+        rings[k] = _rings({k: _mixed(Hinv, k, (0.5 * k, 0.5 * k + np.pi))})[k]
+    kept = _rings_along_rays(rings, radii, o, min_rings=3)
+    assert not isinstance(kept, str), kept
+    assert sorted(kept) == [k for k in range(len(RADII_MM)) if k not in (1, 2)]
+    rings[6] = _rings({6: _mixed(Hinv, 6, (2.0, 2.0 + np.pi))})[6]
+    assert isinstance(_rings_along_rays(rings, radii, o, min_rings=3), str)
+
+
+def test_a_pair_is_not_dropped_from_five_rings() -> None:
+    # Three rings left check each other on one residual a ray: of five rings, two off the
+    # radii refuse the view (a mixture's three agreed so on view 13:89).
+    rng = np.random.default_rng(13)
+    Hinv, conics, o = seen_rings(rng, RADII_MM)
+    radii = np.array(RADII_MM)
+    five = _rings({k: conics[k] for k in (2, 3, 4, 5, 6)})
+    for k in (3, 5):
+        five[k] = _rings({k: _mixed(Hinv, k, (0.5 * k, 0.5 * k + np.pi))})[k]
+    refused = _rings_along_rays(five, radii, o, min_rings=3)
+    assert isinstance(refused, str)
+    six = {**five, **_rings({7: conics[7]})}
+    kept = _rings_along_rays(six, radii, o, min_rings=3)
+    assert not isinstance(kept, str), kept
+    assert sorted(kept) == [2, 4, 6, 7]
+
+
 def test_no_ring_is_dropped_from_three() -> None:
     # Two rings say nothing along a ray: of three, one off the radii refuses the view.
     rng = np.random.default_rng(11)
