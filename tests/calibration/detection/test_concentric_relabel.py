@@ -8,6 +8,7 @@ from calibration.detection.concentric import _coarse_pencil
 from calibration.detection.concentric_relabel import (
     _residual_jacobian,
     _residual_px,
+    _shifted_names,
     relabelled_pencil,
 )
 from calibration.detection.concentric_rings import _conic_point_on_ray
@@ -66,6 +67,54 @@ def test_a_sector_named_two_rings_off_is_named_right_again():
         assert sorted(named) == list(range(len(RADII_MM)))
         for k, conic in named.items():
             assert _conic_error_px(conic, conics[k], o) < 0.5, k
+
+
+def _under_a_stripe(
+    conics: dict[int, np.ndarray], o: np.ndarray, rng: np.random.Generator, along_rad: float
+) -> list[list[tuple[float, np.ndarray]]]:
+    """What the rays from ``o`` name where a stripe along ``along_rad`` hides a band 0.8
+    times ring 0's nearest crossing either side of O: each ray's crossings from where it
+    leaves the band, named from ring 0 up (0.3 px of noise along the ray)."""
+    angles = np.linspace(0, 2 * np.pi, 96, endpoint=False) + 0.013
+    dirs = np.column_stack([np.cos(angles), np.sin(angles)])
+    t = np.array([_conic_point_on_ray(conics[k], o, dirs) for k in sorted(conics)])  # (K, n)
+    half_band = 0.8 * float(t[0].min())
+    hidden = half_band / np.maximum(np.abs(np.sin(angles - along_rad)), 1e-9)
+    t += rng.normal(0.0, 0.3, t.shape)
+    per_ring: list[list[tuple[float, np.ndarray]]] = [[] for _ in conics]
+    for j, a in enumerate(angles):
+        seen = [k for k in range(len(conics)) if t[k, j] > hidden[j]]
+        for name, k in enumerate(seen):
+            per_ring[name].append((float(a), o + t[k, j] * dirs[j]))
+    return per_ring
+
+
+def test_rays_whose_start_a_stripe_hides_are_named_right_again():
+    # A laser stripe along the rays over O (randomised view 18:66): most rays miss one to
+    # several inner rings and name the rest from ring 0; only the rays across the stripe
+    # see every ring. Each ray's names shifted as a whole, one homography names them right.
+    rng = np.random.default_rng(7)
+    for _ in range(10):
+        _, conics, o = seen_rings(rng, RADII_MM)
+        per_ring = _under_a_stripe(conics, o, rng, rng.uniform(0.0, np.pi))
+        found = relabelled_pencil(per_ring, np.array(RADII_MM), o, min_rings=3)
+        assert not isinstance(found, str), found
+        named, centre = found
+        assert np.linalg.norm(centre - o) < 0.3
+        assert len(named) >= 6
+        for k, conic in named.items():
+            assert _conic_error_px(conic, conics[k], o) < 0.5, k
+
+
+def test_a_rays_names_move_out_by_the_shift_the_model_agrees_with():
+    radii = np.array([10.0, 20.0, 30.0, 40.0])
+    # ray 0 named right; ray 1 saw rings 1-3 and named them 0-2; ray 2 agrees with no shift
+    rho = np.array([10.1, 19.9, 30.2, 20.1, 29.8, 40.2, 14.0, 26.0])
+    labels = np.array([0, 1, 2, 0, 1, 2, 0, 1])
+    ray_of = np.array([0, 0, 0, 1, 1, 1, 2, 2])
+    names, agree = _shifted_names(rho, labels, ray_of, radii)
+    assert names.tolist() == [0, 1, 2, 1, 2, 3, 0, 1]
+    assert agree.tolist() == [True] * 6 + [False, False]
 
 
 def test_the_rings_own_conics_mix_the_rings_such_a_sector_names():

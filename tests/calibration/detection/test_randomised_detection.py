@@ -192,6 +192,13 @@ def _detected_stripe_view(
         # 1.7 px of blur), the second diameter dark on a fifth of its samples only (the
         # angular scan takes it where the rings put it, the first one's conjugate)
         (17, 101, "a faint print, a stripe through O: the second diameter under the scan's bar"),
+        # refused until the forty-seventh session: a 30 px stripe 8 deg off a diameter over a
+        # faint print; the rays along it start beyond the inner rings and name the first
+        # ring they see ring 0 (the renaming shifts each ray's names as a whole)
+        (18, 66, "a stripe along a diameter over O: most rays name their rings a shift off"),
+        # detected by a renaming 2 px off O before; named right, the two inner rings under a
+        # stripe tangent to ring 0 broke the radii along the rays (both are dropped now)
+        (21, 50, "13 rings, a stripe tangent to the innermost: two rings off their lines"),
     ],
 )
 def test_views_with_a_laser_stripe_over_the_target_are_detected_and_labelled_right(
