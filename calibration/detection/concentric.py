@@ -88,6 +88,7 @@ from calibration.detection.concentric_rays import (
     _hough_lines,
     _label_rays,
     _threshold_map,
+    starts_hidden,
 )
 from calibration.detection.concentric_relabel import relabelled_pencil
 from calibration.detection.concentric_rings import (
@@ -572,7 +573,7 @@ def _detect_with_kernel(
 
     # -- initial conics and the pencil centre
     if state.now.relabel:
-        pencil = relabelled_pencil(per_ring, radii, c, s.min_rings)
+        pencil = relabelled_pencil(per_ring, radii, c, s.min_rings, starts_hidden(z_rays, c))
     else:
         pencil = _coarse_pencil(per_ring, radii, c, s.min_rings, state.now.joint)
     if isinstance(pencil, str):

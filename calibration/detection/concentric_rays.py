@@ -415,6 +415,16 @@ def _fitted_rays(
     return angles, count, peaks, ok
 
 
+def starts_hidden(d: NDArray, c: NDArray) -> bool:
+    """Whether rays from ``c`` start under hidden print (a laser stripe or glare over it):
+    whether any map value that their first samples' bilinear corners read (a pixel around
+    ``c``) is negative in ``d`` ``(H, W)``; such rays start where they leave it
+    (:func:`~calibration.detection.ray_kernels.label_rays`)."""
+    u0, v0 = int(np.floor(c[0])), int(np.floor(c[1]))
+    around = d[max(v0 - 1, 0) : max(v0 + 3, 0), max(u0 - 1, 0) : max(u0 + 3, 0)]
+    return bool(np.any(around < 0))
+
+
 def _ray_support(
     d: NDArray,
     c: NDArray,

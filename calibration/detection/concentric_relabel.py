@@ -13,10 +13,10 @@ crossing by the ring nearest it under the fit, and fits again until the names se
 A laser stripe over O hides every ray's start: a ray names its first crossing ring 0 whatever
 ring it is, and where the stripe runs along the rays the inner rings are hidden on most of
 them (randomised view 18:66: with O and the diameters given, 153 of 248 crossings named one
-to three rings in). Such a ray is right but for a shift of all its names: the model is judged
-by each ray's names moved out by the shift that agrees with it best
-(:func:`_shifted_names`), and half of the draws come from the rays that crossed every ring,
-whose names cannot be shifted.
+to three rings in). Such a ray is right but for a shift of all its names: where the rays
+start under hidden print, the model is judged by each ray's names moved out by the shift that
+agrees with it best (:func:`_shifted_names`). Half of the draws come from the rays that
+crossed every ring, whose names cannot be shifted.
 
 The detector's last pass only (:mod:`calibration.detection.concentric`): every view another
 pass measures keeps its measurement, and what this pass proposes is judged by the fine stage's
@@ -169,7 +169,7 @@ def _affine_start(pts: NDArray, r_mm: NDArray, c: NDArray) -> NDArray | None:
 
 
 def _shifted_names(
-    rho_mm: NDArray, labels: NDArray, ray_of: NDArray, radii: NDArray
+    rho_mm: NDArray, labels: NDArray, ray_of: NDArray, radii: NDArray, shift: bool = True
 ) -> tuple[NDArray, NDArray]:
     """The crossings' names, each ray's moved out by the number of rings that agrees best
     with a model, and whether the model agrees with each.
@@ -184,6 +184,8 @@ def _shifted_names(
         Each crossing's ray, ``0 .. R-1``.
     radii : ndarray, shape (K,)
         The spec's ring radii, mm.
+    shift : bool
+        False: every shift is 0 (the names as the rays gave them).
 
     Returns
     -------
@@ -199,25 +201,31 @@ def _shifted_names(
     n_rays = int(ray_of.max()) + 1 if len(ray_of) else 0
     top = np.zeros(n_rays, dtype=np.int64)
     np.maximum.at(top, ray_of, labels)
-    votes = np.empty((k, n_rays))
-    for shift in range(k):
-        near = np.abs(rho_mm - radii[np.minimum(labels + shift, k - 1)]) < tol_mm
-        votes[shift] = np.bincount(ray_of, weights=near, minlength=n_rays)
-        votes[shift, top + shift >= k] = -1.0
+    votes = np.full((k, n_rays), -1.0)
+    for by in range(k if shift else 1):
+        near = np.abs(rho_mm - radii[np.minimum(labels + by, k - 1)]) < tol_mm
+        votes[by] = np.bincount(ray_of, weights=near, minlength=n_rays)
+        votes[by, top + by >= k] = -1.0
     names = labels + np.argmax(votes, axis=0)[ray_of]
     return names, np.abs(rho_mm - radii[names]) < tol_mm
 
 
 def _settle(
-    params: NDArray, pts: NDArray, labels: NDArray, ray_of: NDArray, radii: NDArray
+    params: NDArray,
+    pts: NDArray,
+    labels: NDArray,
+    ray_of: NDArray,
+    radii: NDArray,
+    shift: bool,
 ) -> tuple[NDArray, NDArray, NDArray] | None:
     """From a model, fit and name the crossings in turn until the names settle: the model,
     every crossing's ring and whether it is named (within :data:`NAME_FRACTION` of a gap).
-    The first names are the rays' own, each ray's shifted (:func:`_shifted_names`)."""
+    The first names are the rays' own (each ray's shifted with ``shift``,
+    :func:`_shifted_names`)."""
     gap_mm = float(np.min(np.diff(radii)))
     rho, q = _radius_mm(params, pts)
     scale_px = 0.25 * gap_mm * float(np.median(q / np.maximum(rho, 1e-9)))
-    labels, named = _shifted_names(rho, labels, ray_of, radii)
+    labels, named = _shifted_names(rho, labels, ray_of, radii, shift)
     for _ in range(MAX_ROUNDS):
         if named.sum() < MIN_NAMED_SHARE * len(pts):
             break
@@ -235,7 +243,11 @@ def _settle(
 
 
 def relabelled_pencil(
-    per_ring: list[list[tuple[float, NDArray]]], radii: NDArray, c: NDArray, min_rings: int
+    per_ring: list[list[tuple[float, NDArray]]],
+    radii: NDArray,
+    c: NDArray,
+    min_rings: int,
+    start_hidden: bool = False,
 ) -> tuple[dict[int, NDArray], NDArray] | str:
     """Ring conics and the image of O from one homography fitted to every ray crossing.
 
@@ -258,6 +270,10 @@ def relabelled_pencil(
     min_rings : int
         Fewest rings, each named at :data:`MIN_CONIC_POINTS` crossings or more over a quarter
         turn, for a pencil.
+    start_hidden : bool
+        Whether the rays start under hidden print (a stripe over ``c``): only then are a
+        ray's names shifted as a whole (:func:`_shifted_names`). Elsewhere a ray sees its
+        first ring, and shifts would only let clutter's crossings agree with more models.
 
     Returns
     -------
@@ -277,7 +293,7 @@ def relabelled_pencil(
 
     def agreeing(model: NDArray) -> int:
         rho, _ = _radius_mm(model, pts)
-        return int(np.sum(_shifted_names(rho, labels, ray_of, radii)[1]))
+        return int(np.sum(_shifted_names(rho, labels, ray_of, radii, start_hidden)[1]))
 
     # Affine models of the draws first (linear, cheap); the perspective fitted to the draws
     # of the best few (an affine model is a ring gap off over a tilted target, but ranks the
@@ -305,7 +321,7 @@ def relabelled_pencil(
     # benchmark's views with and without a target: not followed, which halves the pass's
     # time on views of clutter)
     settled = [
-        _settle(b[1], pts, labels, ray_of, radii)
+        _settle(b[1], pts, labels, ray_of, radii, start_hidden)
         for b in best
         if b is not None and b[0] >= MIN_NAMED_SHARE * len(pts)
     ]

@@ -13,6 +13,7 @@ from calibration.detection.concentric_rays import (
     _grey_morphology,
     _lit_level,
     _threshold_map,
+    starts_hidden,
 )
 
 
@@ -162,3 +163,15 @@ def test_bright_masks_find_a_stripe_and_are_made_once_per_element_size() -> None
     assert masks(5) is masks(7)
     assert masks(12) is got and masks(9) is not got
     np.testing.assert_array_equal(masks(9), _bright_mask(img, 9))
+
+
+def test_rays_start_hidden_where_the_print_within_a_pixel_of_their_centre_is_hidden() -> None:
+    # A stripe 6 px wide (rows 20-25) hidden in the map: the first samples of rays from a
+    # centre read the pixels around it.
+    d = np.ones((50, 60))
+    d[20:26] = -1.0
+    assert starts_hidden(d, np.array([30.0, 22.5]))
+    assert starts_hidden(d, np.array([30.0, 26.5]))  # (its first samples reach row 25)
+    assert not starts_hidden(d, np.array([30.0, 28.5]))
+    assert not starts_hidden(d, np.array([30.0, 10.0]))
+    assert not starts_hidden(d, np.array([-5.0, -5.0]))  # (outside the map: nothing read)

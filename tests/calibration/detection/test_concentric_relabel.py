@@ -72,14 +72,14 @@ def test_a_sector_named_two_rings_off_is_named_right_again():
 def _under_a_stripe(
     conics: dict[int, np.ndarray], o: np.ndarray, rng: np.random.Generator, along_rad: float
 ) -> list[list[tuple[float, np.ndarray]]]:
-    """What the rays from ``o`` name where a stripe along ``along_rad`` hides a band 0.8
-    times ring 0's nearest crossing either side of O: each ray's crossings from where it
-    leaves the band, named from ring 0 up (0.3 px of noise along the ray)."""
+    """What the rays from ``o`` name where a stripe along ``along_rad`` hides a band as wide
+    as ring 0's nearest crossing either side of O (few rays, those across the stripe, cross
+    every ring): each ray's crossings from where it leaves the band, named from ring 0 up
+    (0.3 px of noise along the ray)."""
     angles = np.linspace(0, 2 * np.pi, 96, endpoint=False) + 0.013
     dirs = np.column_stack([np.cos(angles), np.sin(angles)])
     t = np.array([_conic_point_on_ray(conics[k], o, dirs) for k in sorted(conics)])  # (K, n)
-    half_band = 0.8 * float(t[0].min())
-    hidden = half_band / np.maximum(np.abs(np.sin(angles - along_rad)), 1e-9)
+    hidden = float(t[0].min()) / np.maximum(np.abs(np.sin(angles - along_rad)), 1e-9)
     t += rng.normal(0.0, 0.3, t.shape)
     per_ring: list[list[tuple[float, np.ndarray]]] = [[] for _ in conics]
     for j, a in enumerate(angles):
@@ -91,19 +91,26 @@ def _under_a_stripe(
 
 def test_rays_whose_start_a_stripe_hides_are_named_right_again():
     # A laser stripe along the rays over O (randomised view 18:66): most rays miss one to
-    # several inner rings and name the rest from ring 0; only the rays across the stripe
-    # see every ring. Each ray's names shifted as a whole, one homography names them right.
+    # several inner rings and name the rest from ring 0. Each ray's names shifted as a
+    # whole, one homography names them right; without shifts 8 of these 10 are refused or
+    # off O.
     rng = np.random.default_rng(7)
+    unshifted = 0
     for _ in range(10):
         _, conics, o = seen_rings(rng, RADII_MM)
         per_ring = _under_a_stripe(conics, o, rng, rng.uniform(0.0, np.pi))
-        found = relabelled_pencil(per_ring, np.array(RADII_MM), o, min_rings=3)
+        found = relabelled_pencil(per_ring, np.array(RADII_MM), o, min_rings=3, start_hidden=True)
         assert not isinstance(found, str), found
         named, centre = found
         assert np.linalg.norm(centre - o) < 0.3
         assert len(named) >= 6
         for k, conic in named.items():
             assert _conic_error_px(conic, conics[k], o) < 0.5, k
+        # rays that see their start are not shifted (clutter's crossings would agree with
+        # more models)
+        plain = relabelled_pencil(per_ring, np.array(RADII_MM), o, min_rings=3)
+        unshifted += not isinstance(plain, str) and np.linalg.norm(plain[1] - o) < 0.3
+    assert unshifted <= 3
 
 
 def test_a_rays_names_move_out_by_the_shift_the_model_agrees_with():
@@ -115,6 +122,9 @@ def test_a_rays_names_move_out_by_the_shift_the_model_agrees_with():
     names, agree = _shifted_names(rho, labels, ray_of, radii)
     assert names.tolist() == [0, 1, 2, 1, 2, 3, 0, 1]
     assert agree.tolist() == [True] * 6 + [False, False]
+    names, agree = _shifted_names(rho, labels, ray_of, radii, shift=False)
+    assert names.tolist() == labels.tolist()
+    assert agree.tolist() == [True] * 3 + [False] * 5
 
 
 def test_the_rings_own_conics_mix_the_rings_such_a_sector_names():
