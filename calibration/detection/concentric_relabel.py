@@ -198,11 +198,13 @@ def _shifted_names(
     """
     k = len(radii)
     tol_mm = NAME_FRACTION * float(np.min(np.diff(radii)))
+    if not shift:
+        return labels, np.abs(rho_mm - radii[labels]) < tol_mm
     n_rays = int(ray_of.max()) + 1 if len(ray_of) else 0
     top = np.zeros(n_rays, dtype=np.int64)
     np.maximum.at(top, ray_of, labels)
     votes = np.full((k, n_rays), -1.0)
-    for by in range(k if shift else 1):
+    for by in range(k):
         near = np.abs(rho_mm - radii[np.minimum(labels + by, k - 1)]) < tol_mm
         votes[by] = np.bincount(ray_of, weights=near, minlength=n_rays)
         votes[by, top + by >= k] = -1.0
@@ -253,8 +255,8 @@ def relabelled_pencil(
 
     Rays are named whole, so they are sampled whole (:data:`SAMPLE_RAYS`, :data:`SAMPLES`
     draws, seeded; the first half from the rays that crossed every ring, where there are
-    enough): the draw whose affine model agrees with the most crossings as named (each ray's
-    names shifted as :func:`_shifted_names` says), and the best of :data:`PERSPECTIVE_DRAWS`
+    enough): the draw whose affine model agrees with the most crossings as named (with
+    ``start_hidden``, each ray's names shifted as :func:`_shifted_names` says), and the best of :data:`PERSPECTIVE_DRAWS`
     draws fitted with the perspective, each start the fit and the naming in turn; the one that
     names more crossings is kept.
 
