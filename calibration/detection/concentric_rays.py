@@ -268,6 +268,15 @@ def _threshold_map(
     unclipped pixels; tiles without enough of them take the whole lit area's
     (:func:`_noise_threshold`). The tile grid is interpolated to every pixel.
 
+    A tile whose darkness is censored at 0 (a quarter or more of it exactly 0: its low
+    quantiles give no spread, :func:`~calibration.detection.ray_kernels.tile_thresholds`)
+    learns nothing either. At the first scale (``floor`` None) that is print so dense that
+    the paper between its lines is its own closing (randomised view 18:57, 8 rings 6 px
+    apart): such a tile takes the floor, since the whole area's level, raised by those very
+    lines, would lose them. At a smaller scale it is the closing following the noise, and the
+    floor let a third of noisy paper through (21:39): such a tile takes the whole area's
+    level.
+
     No threshold goes below ``floor``: where a closing follows the noise (a narrow one, the
     detector's smaller scales), most of the paper's darkness is exactly 0 and its median and
     MAD say nothing. ``None``: this map sets it, from the whole lit area's level (at the
@@ -286,6 +295,7 @@ def _threshold_map(
         lit = _lit_level(bg, hidden)
     live = _live_mask(bg, lit, hidden)
     level = _noise_threshold(d, live)
+    first_scale = floor is None
     if floor is None:
         # (more than half of the paper exactly 0 even here: the level of the rest)
         paper = level if level > 0 else _noise_threshold(d, live & (d > 0))
@@ -304,7 +314,9 @@ def _threshold_map(
     # thick rings may cover half a tile).
     thr = tile_thresholds(blocks)
     enough = count >= 0.25 * blocks.shape[2]
-    thr = np.where(enough & np.isfinite(thr), np.maximum(thr, floor), glob).astype(np.float32)
+    censored = floor if first_scale else glob
+    thr = np.where(enough, np.where(np.isfinite(thr), np.maximum(thr, floor), censored), glob)
+    thr = thr.astype(np.float32)
     # (float32: a float64 darkness divided by it is the same as by its float64 copy)
     return cv2.resize(thr, (w, h), interpolation=cv2.INTER_LINEAR), floor
 

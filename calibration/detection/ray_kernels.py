@@ -29,6 +29,7 @@ from numpy.typing import NDArray
 from scanner.core.jit import HAVE_NUMBA, njit
 
 __all__ = [
+    "CENSORED_SPREAD",
     "FIT_TOL_FRACTION",
     "FIT_TOL_PX",
     "HAVE_NUMBA",
@@ -40,6 +41,14 @@ __all__ = [
 #: ``FIT_TOL_PX + FIT_TOL_FRACTION * t_last`` px (the coarse crossings' own error and the lens).
 FIT_TOL_PX = 1.5
 FIT_TOL_FRACTION = 0.01
+
+#: A tile whose 5th and 25th percentiles are closer than this learns no threshold
+#: (:func:`tile_thresholds`): a quarter or more of its darkness is exactly 0 (where a closing
+#: that follows the noise, the smaller scales, leaves the pixels that are their own
+#: neighbourhood's maximum) or it has no noise to learn. Censored low quantiles say nothing
+#: of the spread: the caller chooses the tile's level
+#: (:func:`~calibration.detection.concentric_rays._threshold_map`).
+CENSORED_SPREAD = 1e-4
 
 
 @njit(cache=True, nogil=True)
@@ -364,7 +373,9 @@ def _tiles(blocks, clip_sigmas, spread):  # pragma: no cover - compiled
             # (order statistics by selection: the same values as from a sort, in less time)
             p5 = _quantile(vals, n, 0.05)
             p25 = _quantile(vals, n, 0.25)
-            sig = max(p25 - p5, 1e-4) / 0.97
+            if p25 - p5 < CENSORED_SPREAD:
+                continue  # the low quantiles are censored at 0: no spread to learn here
+            sig = (p25 - p5) / 0.97
             cut = p25 + 0.674 * sig + clip_sigmas * sig
             kept = 0
             for k in range(n):
@@ -387,7 +398,10 @@ def tile_thresholds(blocks: NDArray, clip_sigmas: float = 4.0, spread: float = 6
     A first level and spread come from the low quantiles (``sigma = (p25 - p5) / 0.97``,
     ``level = p25 + 0.674 sigma``: they hold while printed lines, the outliers on the dark
     side, cover up to 3/4 of the tile); values over ``level + clip_sigmas * sigma`` are
-    dropped before the median and the MAD (scaled by 1.4826) of the rest.
+    dropped before the median and the MAD (scaled by 1.4826) of the rest. Where the low
+    quantiles are closer than :data:`CENSORED_SPREAD` (a quarter of the tile or more exactly 0,
+    or no noise at all) the tile learns nothing: its spread would be taken as nil and all its
+    noise clipped as lines.
 
     Parameters
     ----------
@@ -397,7 +411,7 @@ def tile_thresholds(blocks: NDArray, clip_sigmas: float = 4.0, spread: float = 6
     Returns
     -------
     ndarray, shape (NY, NX)
-        NaN for a tile without a finite sample.
+        NaN for a tile without a finite sample or with censored low quantiles.
     """
     b = np.ascontiguousarray(blocks, dtype=np.float64)
     if b.ndim != 3:

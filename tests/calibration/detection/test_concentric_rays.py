@@ -102,6 +102,43 @@ def test_a_smaller_closing_keeps_the_first_scales_floor() -> None:
     assert np.mean(d > thr) < 0.01
 
 
+def test_noisy_paper_a_third_of_whose_darkness_is_zero_keeps_its_noise_out() -> None:
+    # Randomised view 21:39 (issue #15): paper at 8 grey levels of noise under a 5 px closing,
+    # a third of its darkness exactly 0. Every tile's low quantiles were 0, each learnt the
+    # floor (0.02), and a third of the paper passed it: rays from clutter crossed "lines" in
+    # order everywhere and outranked the target's O. Such tiles take the whole paper's level.
+    rng = np.random.default_rng(21)
+    bg = np.full((240, 320), 0.4) - np.linspace(0, 0.01, 320)[None, :]
+    d = np.where(rng.random(bg.shape) < 0.35, 0.0, np.abs(rng.normal(0, 0.04, bg.shape)))
+    lines = np.zeros(d.shape, bool)
+    lines[:, 40::60] = True
+    d[lines] = 0.3
+    thr, floor = _threshold_map(d, bg, 20, floor=0.02)
+    assert floor == 0.02
+    assert np.mean(d[~lines] > thr[~lines]) < 0.01  # (a third of it over the floor)
+    assert np.all(d[lines] > thr[lines])
+
+
+def test_dense_print_at_the_first_scale_keeps_the_floor() -> None:
+    # Randomised view 18:57: 8 rings 6 px apart under the first (widest) closing, the paper
+    # between the lines its own closing. Those tiles are censored too, but the whole area's
+    # level, raised by the lines themselves, would lose them: at the first scale they keep
+    # the floor; only a smaller scale's censored tiles (noise) take the whole level.
+    rng = np.random.default_rng(57)
+    bg = np.full((240, 320), 0.5) - np.linspace(0, 0.01, 320)[None, :]
+    d = np.abs(rng.normal(0.02, 0.012, bg.shape))
+    dense = np.zeros(bg.shape, bool)
+    dense[:, :160] = True
+    lines = dense & (np.arange(320)[None, :] % 6 < 2)
+    d[dense] = 0.0
+    d[lines] = 0.09
+    thr, floor = _threshold_map(d, bg, 48)
+    assert np.all(d[lines] > thr[lines])
+    assert np.mean(d[~dense] > thr[~dense]) < 0.01
+    smaller, _ = _threshold_map(d, bg, 48, floor=floor)
+    assert np.mean(d[lines] > smaller[lines]) < 0.5
+
+
 def test_a_first_scale_with_mostly_zero_darkness_learns_its_floor_from_the_rest() -> None:
     # A closing that follows the noise even at the first scale: over half of the paper's
     # darkness is exactly 0, its median and MAD are 0, and a floor of one grey level would

@@ -8,6 +8,7 @@ import numpy as np
 from scipy import ndimage
 
 from calibration.detection.ray_kernels import (
+    CENSORED_SPREAD,
     FIT_TOL_FRACTION,
     FIT_TOL_PX,
     _fit_labels,
@@ -283,7 +284,7 @@ def test_tile_thresholds_give_numpys_statistics_with_nans_and_empty_tiles():
     blocks[rng.random(blocks.shape) < 0.2] = np.nan
     blocks[2, 3] = np.nan  # a tile with no lit pixel
     p5, p25 = np.nanpercentile(blocks[:2], [5.0, 25.0], axis=2)
-    sig = np.maximum(p25 - p5, 1e-4) / 0.97
+    sig = (p25 - p5) / 0.97
     kept = np.where(blocks[:2] > (p25 + 0.674 * sig + 4.0 * sig)[:, :, None], np.nan, blocks[:2])
     med = np.nanmedian(kept, axis=2)
     mad = 1.4826 * np.nanmedian(np.abs(kept - med[:, :, None]), axis=2)
@@ -292,3 +293,21 @@ def test_tile_thresholds_give_numpys_statistics_with_nans_and_empty_tiles():
     assert np.isnan(got[2, 3])
     # against the truth: the paper's noise level, the lines clipped out
     assert np.all(np.abs(got[:2] - (0.05 + 6 * 0.01)) < 0.015)
+
+
+def test_a_tile_whose_low_quantiles_are_censored_at_zero_learns_no_threshold():
+    # A closing that follows the noise leaves a third of the paper's darkness exactly 0: the
+    # 5th and 25th percentiles are both 0, the spread they give is nothing, and every
+    # positive sample was clipped as a printed line (the tile learnt a threshold of 0). Such a
+    # tile is left to its caller (NaN); a tile with a few zeros still learns its own.
+    rng = np.random.default_rng(4)
+    noise = np.abs(rng.normal(0.0, 0.04, (1, 3, 400)))
+    blocks = noise.copy()
+    blocks[0, 0, rng.random(400) < 0.35] = 0.0  # censored
+    blocks[0, 1, :12] = 0.0  # 3 % zeros
+    blocks[0, 2, :] = 0.0  # no noise at all
+    got = tile_thresholds(blocks)
+    assert np.isnan(got[0, 0]) and np.isnan(got[0, 2])
+    p5, p25 = np.percentile(blocks[0, 1], [5.0, 25.0])
+    assert p25 - p5 > CENSORED_SPREAD
+    assert np.mean(noise[0, 1] > got[0, 1]) < 0.01
