@@ -270,12 +270,12 @@ def _threshold_map(
 
     A tile whose darkness is censored at 0 (a quarter or more of it exactly 0: its low
     quantiles give no spread, :func:`~calibration.detection.ray_kernels.tile_thresholds`)
-    learns nothing either. At the first scale (``floor`` None) that is print so dense that
-    the paper between its lines is its own closing (randomised view 18:57, 8 rings 6 px
+    learns nothing either. At the first scale (``floor`` None) that may be print so dense
+    that the paper between its lines is its own closing (randomised view 18:57, 8 rings 6 px
     apart): such a tile takes the floor, since the whole area's level, raised by those very
-    lines, would lose them. At a smaller scale it is the closing following the noise, and the
-    floor let a third of noisy paper through (21:39): such a tile takes the whole area's
-    level.
+    lines, would lose them. At a smaller scale it is mostly the closing following the noise,
+    and the floor let a third of noisy paper through (21:39): such a tile takes the whole
+    area's level.
 
     No threshold goes below ``floor``: where a closing follows the noise (a narrow one, the
     detector's smaller scales), most of the paper's darkness is exactly 0 and its median and
