@@ -256,9 +256,9 @@ def relabelled_pencil(
     Rays are named whole, so they are sampled whole (:data:`SAMPLE_RAYS`, :data:`SAMPLES`
     draws, seeded; the first half from the rays that crossed every ring, where there are
     enough): the draw whose affine model agrees with the most crossings as named (with
-    ``start_hidden``, each ray's names shifted as :func:`_shifted_names` says), and the best of :data:`PERSPECTIVE_DRAWS`
-    draws fitted with the perspective, each start the fit and the naming in turn; the one that
-    names more crossings is kept.
+    ``start_hidden``, each ray's names shifted as :func:`_shifted_names` says), and the best
+    of :data:`PERSPECTIVE_DRAWS` draws fitted with the perspective, each start the fit and the
+    naming in turn; the one that names more crossings is kept.
 
     Parameters
     ----------
